@@ -1,0 +1,61 @@
+"""The exceptions esc-bridge raises, all rooted at :class:`BridgeError`.
+
+::
+
+    BridgeError
+    ├── ConfigError (ValueError)          a configuration or CLI argument is wrong
+    └── CodecError (ValueError)           a CAN frame or a value cannot be coded
+        ├── ValueRangeError               encode: a value outside the protocol's range
+        └── FrameError                    decode: a frame that claims to be ours is malformed
+            ├── NotExtendedIdError        an 11-bit (standard) ID, an RTR or an error frame
+            ├── DlcError                  the wrong data length for its type
+            ├── CrcError                  the CRC does not match
+            ├── TailByteError             a CKESC tail byte that is not a single-frame transfer
+            └── UnknownTypeError          an ID in the protocol's range with no known type
+
+Decoders return ``None`` for a frame of another protocol ("not ours"); they raise a
+:class:`FrameError` only for a frame that is in their protocol's space but malformed, so a
+caller on a mixed bus counts both and carries on.
+"""
+
+from __future__ import annotations
+
+
+class BridgeError(Exception):
+    """Root of every exception esc-bridge raises on purpose."""
+
+
+class ConfigError(BridgeError, ValueError):
+    """A configuration file, mixer definition or command-line argument is invalid."""
+
+
+class CodecError(BridgeError, ValueError):
+    """A CAN frame could not be encoded or decoded."""
+
+
+class ValueRangeError(CodecError):
+    """A value to encode does not fit the protocol's field; it is never wrapped or clipped."""
+
+
+class FrameError(CodecError):
+    """A received frame is malformed for the protocol it claims to belong to."""
+
+
+class NotExtendedIdError(FrameError):
+    """Both ESC protocols use 29-bit data frames only."""
+
+
+class DlcError(FrameError):
+    """The data length does not match the frame type."""
+
+
+class CrcError(FrameError):
+    """The frame's CRC does not match its data."""
+
+
+class TailByteError(FrameError):
+    """A CKESC tail byte without start=end=1, toggle=0 (not a single-frame transfer)."""
+
+
+class UnknownTypeError(FrameError):
+    """The ID lies in the protocol's range but names no type the protocol defines."""
