@@ -1,0 +1,419 @@
+"""The bridge's configuration: TOML sections validated once into frozen, typed dataclasses.
+
+Precedence: defaults < file < command line. The raw values are merged first and validated once,
+so a mistake is reported the same way wherever it came from: the file (or "command line"), the
+``[section] key``, what was expected and what was found. Unknown sections and keys are errors,
+because a misspelt safety setting that is silently ignored is worse than a refused start.
+
+Every key is documented in ``config/README.md``; a test keeps that page and this module in step.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal, cast
+
+from bridge.errors import ConfigError
+
+ProtocolName = Literal["ckesc", "ft"]
+CkescCommand = Literal["12b", "14b", "10b"]
+FtMode = Literal["current", "current_percent", "duty", "erpm"]
+FtGear = Literal["none", "low", "middle", "high", "reverse"]
+MavlinkSource = Literal[
+    "servo_output_raw", "actuator_output_status", "hil_actuator_controls", "actuator_control_target"
+]
+Latency = Literal["fixed", "immediate"]
+LoopMode = Literal["auto", "process", "thread"]
+
+# Per-protocol defaults for keys whose right value depends on the protocol.
+DEFAULT_RATE_HZ: dict[ProtocolName, int] = {"ckesc": 400, "ft": 100}
+DEFAULT_BITRATE: dict[ProtocolName, int] = {"ckesc": 1_000_000, "ft": 1_000_000}
+FT_COMMAND_TIMEOUT_MS = 450  # the ESC drops a command not repeated within this (PROTOCOLS.md §2.2)
+# A command must reach each FT ESC at least this many times within its timeout, so that a few
+# lost frames or a stalled cycle never let the ESC time out mid-flight.
+FT_MIN_REFRESHES_PER_TIMEOUT = 4
+
+
+def _check(predicate: Callable[[Any], bool], expected: str) -> Callable[[Any], str | None]:
+    def check(value: Any) -> str | None:
+        return None if predicate(value) else expected
+
+    return check
+
+
+def _int_range(lo: int, hi: int) -> Callable[[Any], str | None]:
+    return _check(
+        lambda v: isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi,
+        f"an integer {lo}..{hi}",
+    )
+
+
+def _float_range(lo: float, hi: float) -> Callable[[Any], str | None]:
+    return _check(
+        lambda v: (
+            isinstance(v, int | float)
+            and not isinstance(v, bool)
+            and math.isfinite(v)
+            and lo <= v <= hi
+        ),
+        f"a number {lo:g}..{hi:g}",
+    )
+
+
+def _choice(*choices: str) -> Callable[[Any], str | None]:
+    return _check(lambda v: v in choices, "one of " + ", ".join(repr(c) for c in choices))
+
+
+def _string(v: Any) -> str | None:
+    return None if isinstance(v, str) and v else "a non-empty string"
+
+
+def _bool(v: Any) -> str | None:
+    return None if isinstance(v, bool) else "true or false"
+
+
+def _int_list(lo: int, hi: int) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        ok = isinstance(v, list) and all(
+            isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in v
+        )
+        if not ok:
+            return f"a list of integers {lo}..{hi}"
+        return None if len(set(v)) == len(v) else f"a list of distinct integers {lo}..{hi}"
+
+    return check
+
+
+def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
+    def optional(v: Any) -> str | None:
+        return None if v is None else check(v)
+
+    return optional
+
+
+def _range_pair(v: Any) -> str | None:
+    ok = (
+        isinstance(v, list)
+        and len(v) == 2
+        and all(isinstance(x, int | float) and math.isfinite(x) for x in v)
+        and v[0] != v[1]
+    )
+    return None if ok else "two different numbers [low, high]"
+
+
+def _options(v: Any) -> str | None:
+    ok = isinstance(v, dict) and all(isinstance(k, str) for k in v)
+    return None if ok else "a table of interface options"
+
+
+def _is_hex32(v: Any) -> bool:
+    if not isinstance(v, str) or len(v) != 64:
+        return False
+    try:
+        bytes.fromhex(v)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_report_rates(v: Any) -> bool:
+    return (
+        isinstance(v, list | tuple)
+        and len(v) == 3
+        and all(isinstance(x, int | float) and 2 <= x <= 50 for x in v)
+    )
+
+
+def _choice_int(*choices: int) -> Callable[[Any], str | None]:
+    return _check(
+        lambda v: isinstance(v, int) and v in choices,
+        "one of " + ", ".join(str(c) for c in choices),
+    )
+
+
+def key(default: Any, check: Callable[[Any], str | None], doc: str) -> Any:
+    """A config key: its default, its validator (returns what was expected, or None) and doc."""
+    return field(default=default, metadata={"check": check, "doc": doc})
+
+
+def _list_key(check: Callable[[Any], str | None], doc: str, default: tuple[int, ...] = ()) -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc, "list": True})
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    url: str = key("udpin:0.0.0.0:14550", _string, "pymavlink connection string of the autopilot")
+    source: MavlinkSource = key(
+        "servo_output_raw",
+        _choice(
+            "servo_output_raw",
+            "actuator_output_status",
+            "hil_actuator_controls",
+            "actuator_control_target",
+        ),
+        "which message carries the motor outputs",
+    )
+    autopilot_system_id: int = key(1, _int_range(1, 255), "system ID whose outputs are obeyed")
+    autopilot_component_id: int = key(
+        1, _int_range(1, 255), "component ID whose outputs are obeyed (1 = MAV_COMP_ID_AUTOPILOT1)"
+    )
+    component_id: int = key(
+        191, _int_range(1, 255), "the bridge's own component ID (191 = ONBOARD_COMPUTER)"
+    )
+    stream_rate_hz: float = key(
+        200.0, _float_range(0, 1000), "output stream rate asked of the autopilot; 0 = do not ask"
+    )
+    signing_key: str | None = key(
+        None,
+        _optional(_check(_is_hex32, "64 hex digits (a 32-byte key)")),
+        "MAVLink 2 signing key; when set, unsigned or badly signed messages are rejected",
+    )
+    heartbeat_hz: float = key(1.0, _float_range(0.1, 10), "rate of the bridge's own HEARTBEAT")
+
+
+@dataclass(frozen=True)
+class MixerConfig:
+    name: str = key(
+        "passthrough-4", _string, "bundled mixer name (see mixers/) or path to a mixer .toml"
+    )
+    input_range: tuple[float, float] | None = key(
+        None,
+        _optional(_range_pair),
+        "input range of every channel source, overriding the mixer's "
+        "(default: [1000, 2000] µs for servo_output_raw, [0, 1] otherwise)",
+    )
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    protocol: ProtocolName = key("ckesc", _choice("ckesc", "ft"), "ESC protocol on the bus")
+    rate_hz: int | None = key(
+        None, _optional(_int_range(1, 1000)), "command rate per ESC (default 400 CKESC, 100 FT)"
+    )
+    latency: Latency = key(
+        "fixed",
+        _choice("fixed", "immediate"),
+        "fixed: send at the rate; immediate: send a fresh input at once and re-phase the tick",
+    )
+    require_armed: bool = key(True, _bool, "send safe values while disarmed (false: bench use)")
+    input_timeout_ms: int = key(
+        100, _int_range(20, 1000), "input older than this is stale: safe values are sent"
+    )
+    shutdown_flush_ms: int = key(200, _int_range(0, 5000), "safe values sent this long on exit")
+    loop: LoopMode = key(
+        "auto",
+        _choice("auto", "process", "thread"),
+        "where the output loop runs: its own process (free of the GIL), a thread, or auto "
+        "(process for interfaces several processes can open: socketcan, udp_multicast)",
+    )
+    realtime_priority: int = key(
+        50, _int_range(0, 99), "SCHED_FIFO priority of the output loop when permitted; 0 = off"
+    )
+    bus_load_ceiling: float = key(
+        0.70, _float_range(0.05, 1.0), "refuse a config whose worst-case bus load exceeds this"
+    )
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    interface: str = key("socketcan", _string, "python-can interface name")
+    channel: str = key("can0", _string, "python-can channel (socketcan: the netdev, e.g. can0)")
+    bitrate: int | None = key(
+        None,
+        _optional(
+            _choice_int(1_000_000, 750_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
+        ),
+        "bus bit rate in bit/s, used for the bus-load check and by interfaces that set it",
+    )
+    options: Mapping[str, Any] | None = key(
+        None,
+        _optional(_options),
+        "extra python-can arguments for the interface (e.g. port = 43113)",
+    )
+
+
+@dataclass(frozen=True)
+class EscsConfig:
+    ids: tuple[int, ...] = _list_key(
+        _int_list(1, 125),
+        "ID of the ESC on each mixer output, in output order (CKESC node ID / FT ESC ID); "
+        "default 1..N",
+    )
+    ckesc_command: CkescCommand = key(
+        "12b", _choice("12b", "14b", "10b"), "CKESC throttle frame (14b: <= 4 ESCs; 10b: <= 6)"
+    )
+    ckesc_channels: tuple[int, ...] = _list_key(
+        _int_list(1, 20),
+        "CKESC throttle channel of each output (set in the ESC with Set ID); default 1..N",
+    )
+    ckesc_msg_hz: tuple[float, float, float] = key(
+        (50.0, 10.0, 2.0),
+        _check(_is_report_rates, "three rates [MSG1, MSG2, MSG3] in Hz, each 2..50"),
+        "CKESC telemetry rates the ESCs are set to (for the bus-load check)",
+    )
+    ft_mode: FtMode = key(
+        "current",
+        _choice("current", "current_percent", "duty", "erpm"),
+        "FT command: current (A), current_percent, duty or erpm",
+    )
+    ft_crc: bool = key(True, _bool, "use the FT commands with CRC-16")
+    ft_gear: FtGear = key(
+        "none", _choice("none", "low", "middle", "high", "reverse"), "FT speed gear"
+    )
+    ft_max_current_a: float = key(20.0, _float_range(0.1, 500), "FT current at full throttle")
+    ft_max_duty: float = key(0.95, _float_range(0.01, 1.0), "FT duty at full throttle")
+    ft_max_erpm: int = key(50_000, _int_range(100, 500_000), "FT erpm at full throttle")
+    ft_brake_current_a: float = key(
+        0.0, _float_range(0, 500), "safe output: brake with this current (0: command 0 A)"
+    )
+    ft_telemetry_hz: float = key(
+        100.0, _float_range(0, 1000), "FT real-time frames per ESC per second (each of 3 kinds)"
+    )
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """The whole validated configuration."""
+
+    source: str = "defaults"  # where it came from, for messages
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    mixer: MixerConfig = field(default_factory=MixerConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    can: CanConfig = field(default_factory=CanConfig)
+    escs: EscsConfig = field(default_factory=EscsConfig)
+
+    @property
+    def rate_hz(self) -> int:
+        return self.output.rate_hz or DEFAULT_RATE_HZ[self.output.protocol]
+
+    @property
+    def bitrate(self) -> int:
+        return self.can.bitrate or DEFAULT_BITRATE[self.output.protocol]
+
+
+SECTIONS: dict[str, type[Any]] = {
+    "mavlink": MavlinkConfig,
+    "mixer": MixerConfig,
+    "output": OutputConfig,
+    "can": CanConfig,
+    "escs": EscsConfig,
+}
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file into raw tables (validated later by :func:`build_config`).
+
+    Raises:
+        ConfigError: the file is missing, unreadable or not valid TOML.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as file:
+            return tomllib.load(file)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def merge(base: dict[str, Any], override: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """Overlay ``override``'s keys on ``base``'s, section by section (override wins)."""
+    merged = {
+        name: dict(table) if isinstance(table, dict) else table for name, table in base.items()
+    }
+    for name, table in override.items():
+        section = merged.setdefault(name, {})
+        if isinstance(section, dict):
+            section.update(table)
+    return merged
+
+
+def build_config(raw: Mapping[str, Any], source: str) -> BridgeConfig:
+    """Validate raw tables into a :class:`BridgeConfig`.
+
+    Raises:
+        ConfigError: naming ``source``, the section and key, what was expected and what was got.
+    """
+    sections: dict[str, Any] = {}
+    for name, table in raw.items():
+        if name not in SECTIONS:
+            raise ConfigError(
+                f"{source}: unknown section [{name}]; expected one of "
+                + ", ".join(f"[{s}]" for s in SECTIONS)
+            )
+        if not isinstance(table, dict):
+            raise ConfigError(f"{source}: [{name}] must be a table, got {table!r}")
+        sections[name] = _build_section(SECTIONS[name], name, table, source)
+    config = BridgeConfig(source=source, **sections)
+    _check_cross_section(config)
+    return config
+
+
+def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: str) -> Any:
+    known = {f.name: f for f in fields(cls)}
+    values: dict[str, Any] = {}
+    for k, value in table.items():
+        if k not in known:
+            raise ConfigError(
+                f"{source}: [{name}] unknown key {k!r}; expected one of " + ", ".join(known)
+            )
+        problem = known[k].metadata["check"](value)
+        if problem is not None:
+            raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {value!r}")
+        if isinstance(value, list):
+            value = tuple(value)
+        values[k] = value
+    return cls(**values)
+
+
+def _check_cross_section(config: BridgeConfig) -> None:
+    escs, source = config.escs, config.source
+    if escs.ckesc_channels and escs.ids and len(escs.ckesc_channels) != len(escs.ids):
+        raise ConfigError(
+            f"{source}: [escs] ckesc_channels has {len(escs.ckesc_channels)} entries but ids "
+            f"has {len(escs.ids)}; expected one channel per ESC"
+        )
+    if config.output.protocol == "ft":
+        period_ms = 1000 / config.rate_hz
+        if period_ms * FT_MIN_REFRESHES_PER_TIMEOUT > FT_COMMAND_TIMEOUT_MS:
+            slowest = math.ceil(1000 * FT_MIN_REFRESHES_PER_TIMEOUT / FT_COMMAND_TIMEOUT_MS)
+            raise ConfigError(
+                f"{source}: [output] rate_hz: {config.rate_hz} Hz refreshes each FT ESC every "
+                f"{period_ms:.0f} ms; the ESC drops a command after {FT_COMMAND_TIMEOUT_MS} ms, "
+                f"so expected at least {slowest} Hz ({FT_MIN_REFRESHES_PER_TIMEOUT} refreshes "
+                "within the timeout)"
+            )
+
+
+def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
+    """Fill the ESC lists' defaults (IDs and channels 1..N) once the mixer's size is known.
+
+    Raises:
+        ConfigError: the configured lists do not have one entry per mixer output.
+    """
+    escs = config.escs
+    for name in ("ids", "ckesc_channels"):
+        given = cast(tuple[int, ...], getattr(escs, name))
+        if given and len(given) != n_outputs:
+            raise ConfigError(
+                f"{config.source}: [escs] {name} has {len(given)} entries but mixer "
+                f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
+            )
+    default = tuple(range(1, n_outputs + 1))
+    escs = replace(escs, ids=escs.ids or default, ckesc_channels=escs.ckesc_channels or default)
+    return replace(config, escs=escs)
+
+
+def documented_keys() -> list[tuple[str, str, Any, str]]:
+    """(section, key, default, doc) for every key, for docs and the test that checks them."""
+    rows = []
+    for name, cls in SECTIONS.items():
+        for f in fields(cls):
+            rows.append((name, f.name, f.default, f.metadata["doc"]))
+    return rows
