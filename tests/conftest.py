@@ -1,0 +1,221 @@
+"""Shared pieces for tests that run real components: ports, buses, an autopilot, the daemon.
+
+Every test picks its own ports (the OS hands out a free one), so tests never share a bus or a
+MAVLink link and can run in any order. CAN between processes is python-can's udp_multicast
+interface with hop_limit 0 (TTL 0): the frames never leave this machine.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from pymavlink import mavutil
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED_DATA = ROOT.parent / "shared" / "data"
+MULTICAST_GROUP = "239.74.163.2"
+ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def multicast_bus(port: int) -> can.BusABC:
+    return can.Bus(interface="udp_multicast", channel=MULTICAST_GROUP, port=port, hop_limit=0)
+
+
+class Observer:
+    """Records every frame on a cross-process bus, in a thread, with receive times."""
+
+    def __init__(self, port: int) -> None:
+        self.bus = multicast_bus(port)
+        self.frames: list[tuple[float, can.Message]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None:
+                with self._lock:
+                    self.frames.append((time.monotonic(), msg))
+
+    def since(self, t: float) -> list[can.Message]:
+        with self._lock:
+            return [m for ts, m in self.frames if ts >= t]
+
+    def wait_for(
+        self, predicate: Callable[[can.Message], bool], timeout_s: float, after: float = 0.0
+    ) -> tuple[float, can.Message]:
+        """The first frame after ``after`` matching ``predicate``, waiting up to timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        seen = 0
+        while time.monotonic() < deadline:
+            with self._lock:
+                window = self.frames[seen:]
+                seen = len(self.frames)
+            for ts, msg in window:
+                if ts >= after and predicate(msg):
+                    return ts, msg
+            time.sleep(0.005)
+        raise AssertionError(f"no matching frame within {timeout_s} s")
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+        self.bus.shutdown()
+
+
+class Autopilot:
+    """A pymavlink sender playing the autopilot: HEARTBEAT and motor outputs, on loopback."""
+
+    def __init__(self, port: int, system: int = 1, component: int = 1) -> None:
+        self.conn: Any = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=system, source_component=component
+        )
+        self.mav = self.conn.mav
+        self.armed = False
+        self.pwm: list[int] = [1000] * 8
+        self._stop = threading.Event()
+        self._streaming = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def heartbeat(self) -> None:
+        base_mode = mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.armed:
+            base_mode |= mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        self.mav.heartbeat_send(
+            mavutil.mavlink.MAV_TYPE_QUADROTOR,
+            mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            base_mode,
+            0,
+            mavutil.mavlink.MAV_STATE_ACTIVE,
+        )
+
+    def servo_output_raw(self, pwm: list[int]) -> None:
+        values = (list(pwm) + [0] * 16)[:16]
+        self.mav.servo_output_raw_send(int(time.monotonic() * 1e6) & 0xFFFFFFFF, 0, *values)
+
+    def start_stream(self, rate_hz: float = 50.0) -> None:
+        """Send HEARTBEAT at 10 Hz and SERVO_OUTPUT_RAW of ``self.pwm`` at ``rate_hz``."""
+        self._streaming.set()
+
+        def run() -> None:
+            period = 1.0 / rate_hz
+            tick = 0
+            while not self._stop.is_set():
+                if tick % max(1, round(rate_hz / 10)) == 0:
+                    self.heartbeat()
+                if self._streaming.is_set():
+                    self.servo_output_raw(self.pwm)
+                tick += 1
+                time.sleep(period)
+
+        self._thread = threading.Thread(target=run, name="autopilot", daemon=True)
+        self._thread.start()
+
+    def pause_outputs(self) -> None:
+        self._streaming.clear()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+        self.conn.close()
+
+
+class Daemon:
+    """``esc-bridge run`` as a subprocess, stopped with SIGTERM at the end of the test."""
+
+    def __init__(self, args: list[str]) -> None:
+        self.args = [ESC_BRIDGE, *args]
+        self.proc = subprocess.Popen(
+            self.args,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.output = ""
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            out, _ = self.proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        self.output += out or ""
+        return self.proc.returncode
+
+
+@pytest.fixture
+def can_port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def observer(can_port: int) -> Iterator[Observer]:
+    obs = Observer(can_port)
+    yield obs
+    obs.close()
+
+
+@pytest.fixture
+def mavlink_port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def autopilot(mavlink_port: int) -> Iterator[Autopilot]:
+    pilot = Autopilot(mavlink_port)
+    yield pilot
+    pilot.close()
+
+
+@pytest.fixture
+def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Daemon]]:
+    """Start the daemon on this test's bus and link; extra CLI args may follow."""
+    started: list[Daemon] = []
+
+    def start(*extra: str) -> Daemon:
+        daemon = Daemon(
+            [
+                "run",
+                "--mavlink",
+                f"udpin:127.0.0.1:{mavlink_port}",
+                "--can-interface",
+                "udp_multicast",
+                "--can-channel",
+                MULTICAST_GROUP,
+                "--can-option",
+                f"port={can_port}",
+                "--can-option",
+                "hop_limit=0",
+                *extra,
+            ]
+        )
+        started.append(daemon)
+        return daemon
+
+    yield start
+    for daemon in started:
+        daemon.stop()

@@ -1,0 +1,131 @@
+"""`esc-bridge decode` through the real console script, on captures in every text format."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import can
+import pytest
+
+from bridge.capture import BadLine, read_capture
+from conftest import ESC_BRIDGE, ROOT
+
+CKESC_LOG = ROOT / "tests" / "data" / "ckesc-quad.log"
+FT_LOG = ROOT / "tests" / "data" / "ft-quad.log"
+
+
+def decode(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [ESC_BRIDGE, "decode", *args], capture_output=True, text=True, timeout=60, check=False
+    )
+
+
+def test_ckesc_capture_text_summary() -> None:
+    result = decode(str(CKESC_LOG))
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "node 3   Msg1  speed_rpm=3003 throttle=1110 status=RUNNING" in out
+    assert "node 1   Msg2  voltage_v=24.79 current_a=4.5 mos_temp_c=41" in out
+    assert "RawCommand12b  group=1 throttles=1100,1105,1110,1115" in out
+    assert "line 61: not a frame" in out and "'(not a time) can0 garbage'" in out
+    assert "TailByteError" in out
+    summary = out[out.index("-- 73 frames") :]
+    for line in (
+        "20  ckesc Msg1",
+        "4  ckesc Msg2",
+        "4  ckesc Msg3",
+        "40  ckesc RawCommand12b",
+        "1  not understood (another protocol)",
+        "2  DlcError",
+        "1  NotExtendedIdError",
+        "1  TailByteError",
+        "-- CRC errors: 0; malformed lines skipped: 1",
+    ):
+        assert line in summary
+
+
+def test_nodes_keep_other_vendors_frames_out() -> None:
+    # Node 42's 8-byte frame on MSG1's type ID is another vendor's message, not a bad MSG1.
+    result = decode(str(CKESC_LOG), "--nodes", "1,2,3,4")
+    assert result.returncode == 0
+    assert "2  not understood (another protocol)" in result.stdout
+    assert "1  DlcError" in result.stdout  # only the truncated MSG1 from node 3 is left
+
+
+def test_ft_capture_counts_crc_errors() -> None:
+    result = decode(str(FT_LOG))
+    assert result.returncode == 0
+    assert "node 2   RealtimeData2  mosfet_temp_c=38.5 motor_temp_c=-2.25" in result.stdout
+    assert "CrcError: FT REALTIME_DATA_1 (0x0C), ESC 3" in result.stdout
+    assert "-- CRC errors: 1; malformed lines skipped: 0" in result.stdout
+
+
+def test_json_lines() -> None:
+    result = decode(str(FT_LOG), "--json")
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    first = records[0]
+    assert first["protocol"] == "ft" and first["type"] == "SetCurrent"
+    assert first["fields"] == {"current_a": 2.0, "gear": "NONE", "crc": True}
+    assert first["can_id"] == "0x00000100" and first["node"] == 1
+    errors = [r for r in records if r.get("error") == "CrcError"]
+    assert len(errors) == 1 and "expected 0x" in errors[0]["detail"]
+    summary = records[-1]["summary"]
+    assert summary["frames"] == 201
+    assert summary["by_type"]["ft RealtimeData1"] == 40
+    assert summary["errors"] == {"CrcError": 1}
+
+
+def test_protocol_forced() -> None:
+    # Read as FT, CKESC IDs are outside FT's space: nothing is understood, nothing crashes.
+    result = decode(str(CKESC_LOG), "--protocol", "ft")
+    assert result.returncode == 0
+    assert "72  not understood (another protocol)" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("suffix", "writer"),
+    [(".asc", can.ASCWriter), (".csv", can.CSVWriter), (".trc", can.TRCWriter)],
+)
+def test_other_formats_with_a_bad_line(
+    tmp_path: Path, suffix: str, writer: type[can.io.generic.MessageWriter]
+) -> None:
+    frames = [m for m in read_capture(FT_LOG) if isinstance(m, can.Message)][:30]
+    path = tmp_path / f"capture{suffix}"
+    with writer(path) as out:  # type: ignore[call-arg]
+        for msg in frames:
+            out.on_message_received(msg)
+    lines = path.read_text().splitlines(keepends=True)
+    # Corrupt a frame line near the end: a bad hex data byte, or a CSV row short of columns.
+    # (A line python-can's ASC reader does not recognise as a frame at all is an "event" it
+    # skips by design; a frame line it cannot parse is what we must report and step over.)
+    target = len(lines) - 10 if suffix != ".asc" else len(lines) - 11
+    bad_data = lines[target].rstrip("\n").rsplit(" ", 1)[0] + " ZZ\n"
+    lines[target] = "1.0,zz,1\n" if suffix == ".csv" else bad_data
+    path.write_text("".join(lines))
+    items = list(read_capture(path))
+    bad = [i for i in items if isinstance(i, BadLine)]
+    good = [i for i in items if isinstance(i, can.Message)]
+    assert len(bad) == 1 and bad[0].line_no == target + 1
+    assert len(good) == len(frames) - 1
+    assert [m.arbitration_id for m in good[-5:]] == [m.arbitration_id for m in frames[-5:]]
+    result = decode(str(path))
+    assert f"line {target + 1}: not a frame" in result.stdout
+    assert "malformed lines skipped: 1" in result.stdout
+
+
+def test_unknown_format_and_missing_file(tmp_path: Path) -> None:
+    odd = tmp_path / "capture.pcap"
+    odd.write_bytes(b"\x00")
+    result = decode(str(odd))
+    assert result.returncode == 2
+    assert "unknown format '.pcap'; expected one of .asc, .blf" in result.stderr
+    result = decode(str(tmp_path / "absent.log"))
+    assert result.returncode == 2 and "no such file" in result.stderr
+
+
+def test_bad_nodes_argument() -> None:
+    result = decode(str(CKESC_LOG), "--nodes", "1,x")
+    assert result.returncode == 2
+    assert "not a comma-separated list of node IDs" in result.stderr
