@@ -1,0 +1,193 @@
+"""Codec throughput: encode and decode rates of both ESC protocols, on one core.
+
+Run: ``python bench/codec.py [--runs 9] [--frames 20000]``
+
+Each workload codes a batch of frames; a run's rate is frames / elapsed. The table gives the
+median over runs with the 10th and 90th percentile, the median cost per frame, and the share
+of one core needed to keep up with a saturated 1 Mbit/s bus (about 6 250 frames/s).
+Targets (issue 2): decode >= 200 000 telemetry frames/s, encode >= 200 000 throttle frames/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import can
+
+from bridge.escs import ckesc, ft
+
+BUS_SATURATION_FRAMES_PER_S = 6_250
+TARGET_FRAMES_PER_S = 200_000
+ESC_NODES = frozenset(range(1, 21))
+
+
+@dataclass(frozen=True)
+class Workload:
+    name: str
+    target_per_s: int | None
+    make_batch: Callable[[int], Callable[[], int]]  # frames -> a run that codes them
+
+
+def _ckesc_encode_12b(frames: int) -> Callable[[], int]:
+    groups = [(1 + i % 5, [(i * 7 + k * 131) % 2001 for k in range(4)]) for i in range(frames)]
+
+    def run() -> int:
+        tid = 0
+        for group, throttles in groups:
+            ckesc.encode_raw_12b(group, throttles, tid)
+            tid = (tid + 1) & 31
+        return len(groups)
+
+    return run
+
+
+def _ckesc_encode_14b(frames: int) -> Callable[[], int]:
+    commands = [[(i * 7 + k * 131) % 2001 for k in range(4)] for i in range(frames)]
+
+    def run() -> int:
+        for i, throttles in enumerate(commands):
+            ckesc.encode_raw_14b(throttles, i & 31)
+        return len(commands)
+
+    return run
+
+
+def _ckesc_encode_10b(frames: int) -> Callable[[], int]:
+    commands = [[(i * 7 + k * 131) % 1001 for k in range(6)] for i in range(frames)]
+
+    def run() -> int:
+        for throttles in commands:
+            ckesc.encode_raw_10b(throttles)
+        return len(commands)
+
+    return run
+
+
+def _ft_encode(command: ft.Command, scale: float) -> Callable[[int], Callable[[], int]]:
+    def make(frames: int) -> Callable[[], int]:
+        values = [(i % 1000) / 1000 * scale for i in range(frames)]
+
+        def run() -> int:
+            for i, value in enumerate(values):
+                ft.encode_command(1 + i % 8, command, value)
+            return len(values)
+
+        return run
+
+    return make
+
+
+def _ckesc_telemetry(frames: int) -> list[can.Message]:
+    records: list[ckesc.CkescMessage] = [
+        ckesc.Msg1(speed_rpm=12_000, throttle=1_500, status=ckesc.Msg1Status.RUNNING),
+        ckesc.Msg2(voltage_v=25.2, current_a=12.34, mos_temp_c=45),
+        ckesc.Msg3(mos_temp_c=45, capacitor_temp_c=40, motor_temp_c=60, mcu_temp_c=50),
+    ]
+    out = []
+    for i in range(frames):
+        frame = ckesc.CkescFrame(
+            priority=ckesc.PRIORITY_LOWEST,
+            source_node=1 + i % 20,
+            destination_node=None,
+            transfer_id=i & 31,
+            message=records[i % 3],
+        )
+        out.append(ckesc.encode(frame))
+    return out
+
+
+def _ft_telemetry(frames: int) -> list[can.Message]:
+    records: list[ft.FtMessage] = [
+        ft.RealtimeData0(motor_current_a=12.5, battery_current_a=10.25),
+        ft.RealtimeData1(erpm=84_000, duty=0.55),
+        ft.RealtimeData2(mosfet_temp_c=45.5, motor_temp_c=60.25, battery_voltage_v=25.2),
+    ]
+    return [ft.encode(ft.FtFrame(esc_id=1 + i % 20, message=records[i % 3])) for i in range(frames)]
+
+
+def _decoder(
+    make_frames: Callable[[int], list[can.Message]], decode: Callable[[can.Message], object]
+) -> Callable[[int], Callable[[], int]]:
+    def make(frames: int) -> Callable[[], int]:
+        batch = make_frames(frames)
+
+        def run() -> int:
+            for msg in batch:
+                if decode(msg) is None:
+                    raise AssertionError(f"benchmark frame not decoded: {msg}")
+            return len(batch)
+
+        return run
+
+    return make
+
+
+WORKLOADS = [
+    Workload("ckesc encode RawCommand_12b", TARGET_FRAMES_PER_S, _ckesc_encode_12b),
+    Workload("ckesc encode RawCommand_14b", TARGET_FRAMES_PER_S, _ckesc_encode_14b),
+    Workload("ckesc encode RawCommand_10b", TARGET_FRAMES_PER_S, _ckesc_encode_10b),
+    Workload(
+        "ft encode SET_CURRENT_GEAR_CRC16",
+        TARGET_FRAMES_PER_S,
+        _ft_encode(ft.Command.SET_CURRENT_GEAR_CRC16, 50.0),
+    ),
+    Workload(
+        "ft encode SET_DUTY_GEAR", TARGET_FRAMES_PER_S, _ft_encode(ft.Command.SET_DUTY_GEAR, 1.0)
+    ),
+    Workload(
+        "ckesc decode MSG1/2/3",
+        TARGET_FRAMES_PER_S,
+        _decoder(_ckesc_telemetry, lambda m: ckesc.decode(m, ESC_NODES)),
+    ),
+    Workload(
+        "ft decode REALTIME_DATA_0/1/2", TARGET_FRAMES_PER_S, _decoder(_ft_telemetry, ft.decode)
+    ),
+]
+
+
+def _percentile(values: list[float], fraction: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(fraction * (len(ordered) - 1)))]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=9, help="runs per workload (default 9)")
+    parser.add_argument("--frames", type=int, default=20_000, help="frames per run")
+    args = parser.parse_args()
+
+    header = (
+        f"{'workload':<34} {'median/s':>10} {'p10/s':>10} {'p90/s':>10} "
+        f"{'µs/frame':>9} {'%core@bus':>9} {'target':>8}"
+    )
+    print(f"codec throughput, {args.runs} runs x {args.frames} frames, one core")
+    print(header)
+    print("-" * len(header))
+    failed = 0
+    for workload in WORKLOADS:
+        run = workload.make_batch(args.frames)
+        run()  # warm-up: first-call costs are not what a running bridge pays
+        rates = []
+        for _ in range(args.runs):
+            start = time.perf_counter()
+            count = run()
+            rates.append(count / (time.perf_counter() - start))
+        median = statistics.median(rates)
+        verdict = "-"
+        if workload.target_per_s is not None:
+            verdict = "ok" if median >= workload.target_per_s else "MISSED"
+            failed += verdict == "MISSED"
+        print(
+            f"{workload.name:<34} {median:>10,.0f} {_percentile(rates, 0.1):>10,.0f} "
+            f"{_percentile(rates, 0.9):>10,.0f} {1e6 / median:>9.2f} "
+            f"{100 * BUS_SATURATION_FRAMES_PER_S / median:>8.1f}% {verdict:>8}"
+        )
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
