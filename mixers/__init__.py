@@ -1,0 +1,1 @@
+"""Bundled mixer definitions (TOML data, loaded by bridge.mixer); see README.md here."""
