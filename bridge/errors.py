@@ -4,6 +4,7 @@
 
     BridgeError
     ├── ConfigError (ValueError)          a configuration or CLI argument is wrong
+    ├── LinkError (ConnectionError)       a CAN bus or MAVLink link cannot be opened or used
     └── CodecError (ValueError)           a CAN frame or a value cannot be coded
         ├── ValueRangeError               encode: a value outside the protocol's range
         └── FrameError                    decode: a frame that claims to be ours is malformed
@@ -27,6 +28,10 @@ class BridgeError(Exception):
 
 class ConfigError(BridgeError, ValueError):
     """A configuration file, mixer definition or command-line argument is invalid."""
+
+
+class LinkError(BridgeError, ConnectionError):
+    """A CAN bus or MAVLink link could not be opened, or failed beyond recovery."""
 
 
 class CodecError(BridgeError, ValueError):
