@@ -31,7 +31,9 @@ LoopMode = Literal["auto", "process", "thread"]
 
 # Per-protocol defaults for keys whose right value depends on the protocol.
 DEFAULT_RATE_HZ: dict[ProtocolName, int] = {"ckesc": 400, "ft": 100}
-DEFAULT_BITRATE: dict[ProtocolName, int] = {"ckesc": 1_000_000, "ft": 1_000_000}
+# CKESC ships at 500 kbit/s (PROTOCOLS.md §1); FT has no factory rate, VESC firmware uses 500k.
+DEFAULT_BITRATE: dict[ProtocolName, int] = {"ckesc": 500_000, "ft": 500_000}
+CKESC_COMMAND_CHANNELS = {"12b": 20, "14b": 4, "10b": 6}  # highest channel each frame carries
 FT_COMMAND_TIMEOUT_MS = 450  # the ESC drops a command not repeated within this (PROTOCOLS.md §2.2)
 # A command must reach each FT ESC at least this many times within its timeout, so that a few
 # lost frames or a stalled cycle never let the ESC time out mid-flight.
@@ -183,8 +185,8 @@ class MixerConfig:
     input_range: tuple[float, float] | None = key(
         None,
         _optional(_range_pair),
-        "input range of every channel source, overriding the mixer's "
-        "(default: [1000, 2000] µs for servo_output_raw, [0, 1] otherwise)",
+        "input range of every channel source, overriding the mixer's (default: the mixer's, "
+        "PWM [1000, 2000] µs; [0, 1] for hil_actuator_controls)",
     )
 
 
@@ -227,7 +229,7 @@ class CanConfig:
         _optional(
             _choice_int(1_000_000, 750_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
         ),
-        "bus bit rate in bit/s, used for the bus-load check and by interfaces that set it",
+        "bus bit rate in bit/s (default 500000), for the bus-load check and interfaces that set it",
     )
     options: Mapping[str, Any] | None = key(
         None,
@@ -407,6 +409,15 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             )
     default = tuple(range(1, n_outputs + 1))
     escs = replace(escs, ids=escs.ids or default, ckesc_channels=escs.ckesc_channels or default)
+    if config.output.protocol == "ckesc":
+        most = CKESC_COMMAND_CHANNELS[escs.ckesc_command]
+        if max(escs.ckesc_channels) > most:
+            raise ConfigError(
+                f"{config.source}: [escs] ckesc_command {escs.ckesc_command!r} carries channels "
+                f"1..{most}, but the ESCs use channels {list(escs.ckesc_channels)}; expected "
+                'ckesc_command = "12b" (channels 1..20) or channels within 1..'
+                f"{most}"
+            )
     return replace(config, escs=escs)
 
 

@@ -1,0 +1,305 @@
+"""The bridge daemon: MAVLink motor outputs -> mixer -> mailbox -> output loop -> CAN.
+
+Start-up validates everything before a frame is sent (config, mixer, bus load, the MAVLink
+URL), then starts the output loop, which sends safe values until valid, armed, fresh input
+arrives. The supervisor (this module, in the main process) never touches the hot path: it
+samples the loop's counters a few times a second to log and to report each state transition
+by STATUSTEXT, and on SIGINT/SIGTERM asks the loop to send safe values for
+``shutdown_flush_ms`` and stop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from types import FrameType
+from typing import Any
+
+from bridge.busload import check_bus_load
+from bridge.can_io import SHAREABLE_INTERFACES, check_interface
+from bridge.config import BridgeConfig, with_esc_count
+from bridge.errors import LinkError
+from bridge.mailbox import CommandMailbox, LoopState, LoopStats
+from bridge.mavlink_in import MavlinkLink
+from bridge.mixer import Mixer, MixerDefinition, load_mixer
+from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
+
+log = logging.getLogger(__name__)
+
+SUPERVISE_PERIOD_S = 0.1
+LOOP_START_TIMEOUT_S = 15.0  # a spawned interpreter imports the bridge before it reports
+# Default input range of channel sources by MAVLink source, unless [mixer] input_range is set:
+# SERVO_OUTPUT_RAW and PX4's ACTUATOR_OUTPUT_STATUS (from actuator_outputs) carry PWM µs,
+# HIL_ACTUATOR_CONTROLS carries normalized 0..1 motor commands.
+SOURCE_INPUT_RANGES: dict[str, tuple[float, float] | None] = {
+    "servo_output_raw": None,  # the mixer's own (PWM 1000..2000 µs unless it says otherwise)
+    "actuator_output_status": None,
+    "hil_actuator_controls": (0.0, 1.0),
+    "actuator_control_target": None,
+}
+
+# MAV_SEVERITY values for STATUSTEXT.
+SEVERITY_CRITICAL, SEVERITY_WARNING, SEVERITY_NOTICE, SEVERITY_INFO = 2, 4, 5, 6
+STATE_REPORTS: dict[LoopState, tuple[int, str]] = {
+    LoopState.NO_INPUT: (SEVERITY_NOTICE, "ESC out: safe, waiting for motor outputs"),
+    LoopState.DISARMED: (SEVERITY_INFO, "ESC out: disarmed, motors stopped"),
+    LoopState.STALE: (SEVERITY_CRITICAL, "ESC out: FAILSAFE input stale, motors stopped"),
+    LoopState.INVALID: (SEVERITY_CRITICAL, "ESC out: FAILSAFE invalid input, motors stopped"),
+    LoopState.RUNNING: (SEVERITY_INFO, "ESC out: armed, sending motor commands"),
+    LoopState.STOPPING: (SEVERITY_NOTICE, "ESC out: shutting down, motors stopped"),
+}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A validated start-up plan: nothing is opened or sent until :func:`run` executes it."""
+
+    config: BridgeConfig
+    mixer: MixerDefinition
+    load_text: str
+
+
+def plan(config: BridgeConfig) -> Plan:
+    """Validate ``config`` completely: mixer, ESC lists and bus load.
+
+    Raises:
+        ConfigError: anything wrong, named by file, key or mixer entry.
+    """
+    check_interface(config.can, config.source)
+    definition = load_mixer(config.mixer.name)
+    input_range = config.mixer.input_range or SOURCE_INPUT_RANGES[config.mavlink.source]
+    if input_range is not None:
+        definition = definition.with_input_range(*input_range)
+    config = with_esc_count(config, len(definition.outputs))
+    load = check_bus_load(config)
+    return Plan(config, definition, load.describe())
+
+
+class MixerSink:
+    """Receives the autopilot's outputs on the MAVLink thread, mixes, fills the mailbox."""
+
+    def __init__(self, mixer: Mixer, mailbox: CommandMailbox, wake: Connection | None) -> None:
+        self._mixer = mixer
+        self._mailbox = mailbox
+        self._wake_fd = wake.fileno() if wake is not None else None
+        self._armed = False
+        self.mixer_errors = 0
+
+    def on_actuators(self, values: list[float], time_ns: int) -> None:
+        try:
+            fractions = self._mixer.mix(values, self._armed)
+        except Exception:  # any mixer fault must become a safe output, never a crash
+            self.mixer_errors += 1
+            log.exception("mixer failed; sending safe values")
+            fractions = None
+        self._mailbox.write(fractions, time_ns)
+        if self._wake_fd is not None:
+            # A full pipe means a wake-up is already pending: the loop reads the newest anyway.
+            with contextlib.suppress(BlockingIOError):
+                os.write(self._wake_fd, b"\x01")
+
+    def on_armed(self, armed: bool, time_ns: int) -> None:
+        self._armed = armed
+        self._mailbox.write_armed(armed, time_ns)
+
+
+class LoopRunner:
+    """Runs the output loop in a process of its own or in a thread of this one."""
+
+    def __init__(self, setup: LoopSetup, mailbox: CommandMailbox, stats: LoopStats) -> None:
+        self._stats = stats
+        config = setup.config
+        mode = config.output.loop
+        if mode == "auto":
+            mode = "process" if config.can.interface in SHAREABLE_INTERFACES else "thread"
+        self.mode = mode
+        ctx = multiprocessing.get_context("spawn")
+        self._wake_reader: Connection | None = None
+        self.wake_writer: Connection | None = None
+        if config.output.latency == "immediate":
+            self._wake_reader, self.wake_writer = ctx.Pipe(duplex=False)
+            os.set_blocking(self.wake_writer.fileno(), False)
+        self._process: Any = None
+        self._thread: threading.Thread | None = None
+        self._loop: OutputLoop | None = None
+        wake_fd = self._wake_reader
+        if mode == "process":
+            self._process = ctx.Process(
+                target=run_in_process,
+                args=(setup, mailbox, stats, wake_fd),
+                name="esc-bridge-output",
+            )
+        else:
+            fd = wake_fd.fileno() if wake_fd is not None else None
+            self._loop = OutputLoop(setup, mailbox, stats, fd)
+            self._thread = threading.Thread(target=self._run_thread, name="esc-bridge-output")
+        self.thread_error: BaseException | None = None
+
+    def _run_thread(self) -> None:
+        assert self._loop is not None
+        try:
+            self._loop.run()
+        except BaseException as exc:  # noqa: BLE001 - reported by the supervisor
+            self.thread_error = exc
+
+    def start(self) -> None:
+        if self._process is not None:
+            self._process.start()
+        elif self._thread is not None:
+            self._thread.start()
+
+    def alive(self) -> bool:
+        if self._process is not None:
+            return bool(self._process.is_alive())
+        return self._thread is not None and self._thread.is_alive()
+
+    def request_stop(self) -> None:
+        self._stats["stop_requested"] = 1
+        if self._loop is not None:
+            self._loop.request_stop()
+
+    def join(self, timeout_s: float) -> None:
+        if self._process is not None:
+            self._process.join(timeout_s)
+            if self._process.is_alive():
+                log.error("output loop did not stop in %.1f s; terminating it", timeout_s)
+                self._process.kill()
+                self._process.join()
+        elif self._thread is not None:
+            self._thread.join(timeout_s)
+
+    @property
+    def exitcode(self) -> int | None:
+        return None if self._process is None else self._process.exitcode
+
+
+class Supervisor:
+    """Starts the parts, watches the loop, reports transitions, stops cleanly."""
+
+    def __init__(self, plan: Plan) -> None:
+        self._plan = plan
+        config = plan.config
+        self._config = config
+        n = len(plan.mixer.outputs)
+        self.mailbox = CommandMailbox(n)
+        self.stats = LoopStats()
+        setup = LoopSetup(
+            config=config,
+            slew_up_per_s=tuple(o.slew_up_per_s for o in plan.mixer.outputs),
+            slew_down_per_s=tuple(o.slew_down_per_s for o in plan.mixer.outputs),
+            log_level=logging.getLogger().getEffectiveLevel(),
+        )
+        self.runner = LoopRunner(setup, self.mailbox, self.stats)
+        self.sink = MixerSink(Mixer(plan.mixer), self.mailbox, self.runner.wake_writer)
+        self.link = MavlinkLink(config.mavlink, self.sink)
+        self._stop = threading.Event()
+        self._reported_state = LoopState.STARTING
+        self._last_errors = 0
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self) -> int:
+        config = self._config
+        log.info(
+            "esc-bridge: %s x%d (%s), mixer %s, %d Hz, loop in a %s; %s",
+            config.output.protocol,
+            len(config.escs.ids),
+            config.escs.ckesc_command if config.output.protocol == "ckesc" else config.escs.ft_mode,
+            self._plan.mixer.name,
+            config.rate_hz,
+            self.runner.mode,
+            self._plan.load_text,
+        )
+        self.link.start()
+        try:
+            self.runner.start()
+            self._await_loop_start()
+            while not self._stop.wait(SUPERVISE_PERIOD_S):
+                if not self.runner.alive():
+                    self._report(SEVERITY_CRITICAL, "ESC out: FAULT output loop died")
+                    log.error("output loop ended unexpectedly (exit code %s)", self.runner.exitcode)
+                    return 1
+                self._watch()
+            self.runner.request_stop()
+            self.runner.join(config.output.shutdown_flush_ms / 1000 + 5.0)
+            self._watch()
+            log.info("stopped after sending safe values for %d ms", config.output.shutdown_flush_ms)
+            return 0
+        finally:
+            self.runner.request_stop()
+            self.runner.join(1.0)
+            self.link.close()
+
+    def _await_loop_start(self) -> None:
+        deadline = time.monotonic() + LOOP_START_TIMEOUT_S
+        while self.stats["state"] == LoopState.STARTING:
+            if not self.runner.alive() and self.stats["state"] == LoopState.STARTING:
+                break
+            if time.monotonic() > deadline:
+                raise LinkError(f"output loop did not start within {LOOP_START_TIMEOUT_S:.0f} s")
+            time.sleep(0.01)
+        if self.stats["state"] in (LoopState.FAILED, LoopState.STARTING) or not self.runner.alive():
+            detail = self.runner.thread_error or "see the log above"
+            raise LinkError(f"output loop failed to start: {detail}")
+        if self.stats["realtime"]:
+            log.info(
+                "output loop runs with SCHED_FIFO priority %d",
+                self._config.output.realtime_priority,
+            )
+        else:
+            log.warning(
+                "output loop runs WITHOUT real-time priority (needs root or CAP_SYS_NICE; the "
+                "systemd unit grants it): expect ms of jitter when the machine is busy"
+            )
+
+    def _watch(self) -> None:
+        stats = self.stats
+        state = LoopState(stats["state"])
+        if state != self._reported_state and state in STATE_REPORTS:
+            severity, text = STATE_REPORTS[state]
+            self._report(severity, text)
+        self._reported_state = state
+        errors = stats["send_errors"]
+        if errors != self._last_errors:
+            log.warning(
+                "CAN send failures: %d in the last %.1f s (%d in all; bus reopened %d times)",
+                errors - self._last_errors,
+                SUPERVISE_PERIOD_S,
+                errors,
+                stats["bus_reopens"],
+            )
+            self._last_errors = errors
+
+    def _report(self, severity: int, text: str) -> None:
+        level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO
+        log.log(level, "%s", text)
+        self.link.statustext(severity, text)
+
+
+def run(config: BridgeConfig) -> int:
+    """Run the bridge until SIGINT or SIGTERM; returns the process exit code.
+
+    Raises:
+        ConfigError: the configuration is invalid (before anything is sent).
+        LinkError: the MAVLink link or the CAN bus could not be opened.
+    """
+    supervisor = Supervisor(plan(config))
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        log.info("%s: stopping", signal.Signals(signum).name)
+        supervisor.stop()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return supervisor.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
