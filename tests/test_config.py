@@ -1,0 +1,132 @@
+"""Configuration: validation messages, precedence, documentation and the shipped examples."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bridge import daemon
+from bridge.busload import bus_load, frame_bits
+from bridge.cli import _parser, run_config
+from bridge.config import build_config, documented_keys, read_config_file, with_esc_count
+from bridge.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLES = sorted((ROOT / "config").glob("*.toml"))
+
+
+def test_every_key_is_documented_with_its_default() -> None:
+    readme = (ROOT / "config" / "README.md").read_text(encoding="utf-8")
+    for section, key, default, _ in documented_keys():
+        row = re.search(rf"^\| `{key}` \|.*$", readme, re.MULTILINE)
+        assert row is not None, f"[{section}] {key} is not documented in config/README.md"
+        assert f"`{default!r}`" in row.group(0), f"[{section}] {key}: default {default!r} missing"
+        assert f"## [{section}]" in readme
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.name for p in EXAMPLES])
+def test_shipped_examples_are_valid(path: Path) -> None:
+    config = build_config(read_config_file(path), str(path))
+    checked = daemon.plan(config)
+    assert checked.config.escs.ids  # filled in
+    assert "bus load" in checked.load_text
+
+
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        ({"outptu": {}}, r"unknown section \[outptu\]; expected one of \[mavlink\]"),
+        ({"output": {"rate": 4}}, r"\[output\] unknown key 'rate'; expected one of protocol"),
+        ({"output": {"rate_hz": 0}}, r"\[output\] rate_hz: expected an integer 1..1000, got 0"),
+        ({"output": {"rate_hz": "400"}}, r"rate_hz: expected an integer 1..1000, got '400'"),
+        ({"output": {"protocol": "dshot"}}, r"protocol: expected one of 'ckesc', 'ft'"),
+        ({"output": {"input_timeout_ms": 5}}, r"input_timeout_ms: expected an integer 20..1000"),
+        ({"output": {"require_armed": 1}}, r"require_armed: expected true or false, got 1"),
+        ({"can": {"bitrate": 123}}, r"\[can\] bitrate: expected one of 1000000"),
+        ({"escs": {"ids": [1, 1]}}, r"ids: expected a list of distinct integers 1..125"),
+        ({"escs": {"ids": [0]}}, r"ids: expected a list of distinct integers 1..125, got \[0\]"),
+        ({"mavlink": {"signing_key": "abc"}}, r"signing_key: expected 64 hex digits"),
+        ({"mixer": {"input_range": [1, 1]}}, r"input_range: expected two different numbers"),
+        (
+            {"output": {"protocol": "ft", "rate_hz": 5}},
+            r"rate_hz: 5 Hz refreshes each FT ESC every 200 ms; the ESC drops a command after "
+            r"450 ms, so expected at least 9 Hz",
+        ),
+        ({"mavlink": []}, r"\[mavlink\] must be a table"),
+    ],
+)
+def test_bad_values_name_file_key_and_expectation(raw: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as caught:
+        build_config(raw, "vehicle.toml")
+    assert str(caught.value).startswith("vehicle.toml: ")
+
+
+def test_esc_lists_must_match_the_mixer() -> None:
+    config = build_config({"escs": {"ids": [1, 2, 3]}}, "v.toml")
+    with pytest.raises(ConfigError, match=r"ids has 3 entries but mixer 'passthrough-4' has 4"):
+        with_esc_count(config, 4)
+    filled = with_esc_count(build_config({}, "v.toml"), 4)
+    assert filled.escs.ids == (1, 2, 3, 4)
+    assert filled.escs.ckesc_channels == (1, 2, 3, 4)
+
+
+def test_ckesc_frame_must_carry_the_channels() -> None:
+    config = build_config(
+        {"escs": {"ckesc_command": "14b", "ckesc_channels": [1, 2, 3, 5]}}, "v.toml"
+    )
+    with pytest.raises(ConfigError, match=r"'14b' carries channels 1..4"):
+        with_esc_count(config, 4)
+
+
+def test_bus_load_above_ceiling_is_refused_with_numbers() -> None:
+    raw = {
+        "mixer": {"name": "passthrough-16"},
+        "output": {"protocol": "ft", "rate_hz": 400},
+        "can": {"bitrate": 250_000},
+    }
+    with pytest.raises(ConfigError, match=r"bus load \d+\.\d% of 250 kbit/s.*exceeds the ceiling"):
+        daemon.plan(build_config(raw, "v.toml"))
+
+
+def test_bus_load_arithmetic() -> None:
+    # PROTOCOLS.md §3: an 8-byte frame is at most 160 bits (160 µs at 1 Mbit/s).
+    assert frame_bits(8) == 160
+    assert frame_bits(0) == 80
+    config = with_esc_count(
+        build_config({"output": {"rate_hz": 400}, "can": {"bitrate": 1_000_000}}, "v"), 4
+    )
+    load = bus_load(config)
+    assert load.command_frames_per_s == 400  # one 12b group
+    assert load.command_bits_per_s == 400 * 160
+    # 4 ESCs x (MSG1 50 Hz x 7 bytes, MSG2 10 Hz x 6 bytes, MSG3 2 Hz x 8 bytes)
+    assert load.telemetry_bits_per_s == 4 * (50 * frame_bits(7) + 10 * frame_bits(6) + 2 * 160)
+
+
+def test_command_line_overrides_file(tmp_path: Path) -> None:
+    path = tmp_path / "v.toml"
+    path.write_text("[output]\nrate_hz = 200\n[can]\noptions = { port = 1, hop_limit = 0 }\n")
+    args = _parser().parse_args(
+        ["run", "--config", str(path), "--rate", "300", "--can-option", "port=2"]
+    )
+    config = run_config(args)
+    assert config.rate_hz == 300
+    assert dict(config.can.options or {}) == {"port": 2, "hop_limit": 0}
+    assert config.source == str(path)
+
+
+def test_bad_flag_is_named_as_the_flag() -> None:
+    args = _parser().parse_args(["run", "--rate", "5000"])
+    with pytest.raises(ConfigError, match=r"^command line: --rate: expected an integer 1..1000"):
+        run_config(args)
+
+
+def test_missing_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"no such config file"):
+        read_config_file(tmp_path / "absent.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[output\nrate_hz = 1\n")
+    with pytest.raises(ConfigError, match=r"bad.toml: not valid TOML"):
+        read_config_file(bad)
