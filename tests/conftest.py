@@ -20,7 +20,11 @@ from typing import Any
 
 import can
 import pytest
-from pymavlink import mavutil
+
+# The simulated autopilot speaks MAVLink 2, as current ArduPilot and PX4 do; pymavlink picks
+# its wire version from this variable when it is first imported.
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = ROOT.parent / "shared" / "data"
@@ -111,7 +115,10 @@ class Autopilot:
 
     def servo_output_raw(self, pwm: list[int]) -> None:
         values = (list(pwm) + [0] * 16)[:16]
-        self.mav.servo_output_raw_send(int(time.monotonic() * 1e6) & 0xFFFFFFFF, 0, *values)
+        extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}  # MAVLink 2 only
+        self.mav.servo_output_raw_send(
+            int(time.monotonic() * 1e6) & 0xFFFFFFFF, 0, *values[:8], **extensions
+        )
 
     def start_stream(self, rate_hz: float = 50.0) -> None:
         """Send HEARTBEAT at 10 Hz and SERVO_OUTPUT_RAW of ``self.pwm`` at ``rate_hz``."""

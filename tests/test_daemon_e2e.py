@@ -1,0 +1,255 @@
+"""The daemon end to end: a pymavlink autopilot on loopback UDP, `esc-bridge run` as a subprocess,
+and a python-can observer on the cross-process bus decoding what the bridge sends."""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+import pytest
+
+from bridge.escs import ckesc, ft
+from conftest import Autopilot, Daemon, Observer
+
+ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
+
+
+def ckesc_throttles(msg: can.Message) -> tuple[int, ...] | None:
+    """The throttles of a CKESC throttle frame, or None for any other frame."""
+    frame = ckesc.decode(msg)
+    if frame is None or not isinstance(
+        frame.message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
+    ):
+        return None
+    return frame.message.throttles
+
+
+def expect_throttles(observer: Observer, want: tuple[int, ...], timeout_s: float = 3.0) -> float:
+    """Wait for a throttle frame whose leading values are ``want``; returns its time."""
+    ts, _ = observer.wait_for(
+        lambda m: (t := ckesc_throttles(m)) is not None and t[: len(want)] == want, timeout_s
+    )
+    return ts
+
+
+def pwm_to_throttle(pwm: int, full_scale: int = 2000) -> int:
+    fraction = min(max((pwm - 1000) / 1000, 0.0), 1.0)
+    return int(fraction * full_scale + 0.5)
+
+
+def arm_at(autopilot: Autopilot, pwm: list[int]) -> None:
+    autopilot.pwm = pwm
+    autopilot.armed = True
+    autopilot.start_stream(50)
+
+
+SWEEP = [1000, 1100, 1250, 1500, 1733, 2000, 950, 2100, 1501]
+
+
+@pytest.mark.parametrize(
+    ("command", "extra"),
+    [("12b", []), ("14b", []), ("10b", []), ("12b", ["--latency", "immediate"])],
+    ids=["12b", "14b", "10b", "12b-immediate"],
+)
+def test_ckesc_throttle_sweep(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    tmp_path: Path,
+    command: str,
+    extra: list[str],
+) -> None:
+    config = tmp_path / "bridge.toml"
+    config.write_text(f'[escs]\nckesc_command = "{command}"\n')
+    daemon = start_daemon("--config", str(config), *extra)
+    full_scale = 1000 if command == "10b" else 2000
+    arm_at(autopilot, [1000, 1000, 1000, 1000])
+    expect_throttles(observer, (0, 0, 0, 0), ARM_TIMEOUT_S)
+    for pwm in SWEEP:
+        # Four different values per step, so a swapped channel cannot pass.
+        pwms = [pwm, 3000 - pwm, (pwm + 1000) // 2 + 250, 1000 + (pwm % 1000)]
+        autopilot.pwm = pwms
+        expect_throttles(observer, tuple(pwm_to_throttle(p, full_scale) for p in pwms))
+    assert daemon.stop() == 0
+
+
+@pytest.mark.parametrize(
+    ("mode", "record", "value_of"),
+    [
+        ("current", ft.SetCurrent, lambda m: m.current_a / 20.0),
+        ("current_percent", ft.SetCurrentPercent, lambda m: m.fraction),
+        ("duty", ft.SetDuty, lambda m: m.duty / 0.95),
+        ("erpm", ft.SetErpm, lambda m: m.erpm / 50_000),
+    ],
+)
+def test_ft_modes(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    mode: str,
+    record: type,
+    value_of: Callable[[ft.FtMessage], float],
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "bridge.toml"
+    config.write_text(
+        f'[output]\nprotocol = "ft"\n[escs]\nids = [11, 12, 13, 14]\nft_mode = "{mode}"\n'
+    )
+    start_daemon("--config", str(config))
+    arm_at(autopilot, [1000, 1250, 1500, 2000])
+    want = {11: 0.0, 12: 0.25, 13: 0.5, 14: 1.0}
+    got: dict[int, float] = {}
+
+    def matches(msg: can.Message) -> bool:
+        frame = ft.decode(msg)
+        if frame is None or not isinstance(frame.message, record):
+            return False
+        got[frame.esc_id] = value_of(frame.message)
+        return all(abs(got.get(esc, -9) - v) < 1e-4 for esc, v in want.items())
+
+    observer.wait_for(matches, ARM_TIMEOUT_S)
+    # Spread, not burst: consecutive commands go to consecutive ESCs, ~2.5 ms apart at 100 Hz.
+    recent = [
+        (ts, f.esc_id)
+        for ts, m in observer.frames[-40:]
+        if (f := ft.decode(m)) is not None and isinstance(f.message, record)
+    ]
+    ids = [esc for _, esc in recent]
+    assert all(b == (a - 10) % 4 + 11 for a, b in zip(ids, ids[1:], strict=False))
+    gaps = sorted(b[0] - a[0] for a, b in zip(recent, recent[1:], strict=False))
+    assert 0.001 < gaps[len(gaps) // 2] < 0.006  # the median gap is about 10 ms / 4
+
+
+def test_stale_input_goes_safe_within_timeout(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    start_daemon("--rate", "400")
+    arm_at(autopilot, [1600, 1600, 1600, 1600])
+    expect_throttles(observer, (1200, 1200, 1200, 1200), ARM_TIMEOUT_S)
+    autopilot.pause_outputs()  # heartbeats go on: armed, but the output stream is stale
+    stopped_at = time.monotonic()
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    # input_timeout_ms 100 + 2 periods of 2.5 ms, plus up to one 20 ms input period and a
+    # generous allowance for loopback and scheduling on a busy test machine.
+    assert 0.07 <= safe_at - stopped_at <= 0.105 + 0.02 + 0.15
+    # and it stays safe
+    time.sleep(0.2)
+    assert all(ckesc_throttles(m) in (None, (0, 0, 0, 0)) for m in observer.since(safe_at))
+
+
+def test_disarm_goes_safe_at_once(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    start_daemon()
+    arm_at(autopilot, [1500, 1500, 1500, 1500])
+    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    autopilot.armed = False
+    autopilot.heartbeat()
+    disarmed_at = time.monotonic()
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    assert safe_at - disarmed_at < 0.1  # the next frame after the HEARTBEAT is read
+    time.sleep(0.3)  # outputs keep streaming at 1500 µs: still safe while disarmed
+    assert all(ckesc_throttles(m) in (None, (0, 0, 0, 0)) for m in observer.since(safe_at))
+
+
+def test_sigterm_sends_safe_values_then_exits_zero(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    daemon = start_daemon()
+    arm_at(autopilot, [1500, 1500, 1500, 1500])
+    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    sent_at = time.monotonic()
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert daemon.stop() == 0
+    time.sleep(0.2)  # anything still in flight
+    after = [t for m in observer.since(sent_at) if (t := ckesc_throttles(m)) is not None]
+    first_safe = after.index((0, 0, 0, 0))
+    assert first_safe <= 3  # at most a tick or two already on its way
+    safe = after[first_safe:]
+    assert all(t == (0, 0, 0, 0) for t in safe)
+    assert 40 <= len(safe) <= 120  # shutdown_flush_ms 200 at 400 Hz: about 80 frames
+    assert "stopped after sending safe values for 200 ms" in daemon.output
+
+
+def test_sigint_is_handled_like_sigterm(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    daemon = start_daemon()
+    expect_throttles(observer, (0, 0, 0, 0), ARM_TIMEOUT_S)
+    assert daemon.stop(signal.SIGINT) == 0
+    assert "SIGINT: stopping" in daemon.output
+
+
+def test_other_senders_are_ignored(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    mavlink_port: int,
+) -> None:
+    start_daemon()
+    arm_at(autopilot, [1500, 1500, 1500, 1500])
+    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    intruder = Autopilot(mavlink_port, system=7, component=1)
+    try:
+        intruder.pwm = [2000, 2000, 2000, 2000]
+        intruder.armed = True
+        intruder.start_stream(100)
+        since = time.monotonic()
+        time.sleep(1.0)
+        seen = {t for m in observer.since(since) if (t := ckesc_throttles(m)) is not None}
+        assert seen == {(1000, 1000, 1000, 1000)}
+        # When the autopilot disarms, the intruder's "armed" heartbeats do not keep it armed.
+        autopilot.armed = False
+        expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    finally:
+        intruder.close()
+
+
+@pytest.mark.parametrize(
+    ("toml", "args", "message"),
+    [
+        ("[output]\nrate = 400\n", [], "[output] unknown key 'rate'; expected one of protocol"),
+        ('[mixer]\nname = "quad-y"\n', [], "quad-y"),
+        ("[escs]\nids = [1, 2]\n", [], "ids has 2 entries but mixer 'passthrough-4' has 4"),
+        (
+            '[output]\nprotocol = "ft"\nrate_hz = 400\n[mixer]\nname = "passthrough-16"\n'
+            "[can]\nbitrate = 250000\n",
+            [],
+            "exceeds the ceiling of 70%",
+        ),
+        ("", ["--mavlink", "carrier-pigeon:/dev/coop"], "carrier-pigeon:/dev/coop"),
+        ("", ["--rate", "0"], "command line: --rate: expected an integer 1..1000, got 0"),
+        ("", ["--can-interface", "no_such_bus"], "'no_such_bus' is not available"),
+        ("[output\n", [], "not valid TOML"),
+    ],
+    ids=[
+        "unknown-key",
+        "mixer",
+        "esc-count",
+        "bus-load",
+        "mavlink-url",
+        "flag",
+        "interface",
+        "toml",
+    ],
+)
+def test_bad_config_stops_before_sending(
+    start_daemon: Callable[..., Daemon],
+    observer: Observer,
+    tmp_path: Path,
+    toml: str,
+    args: list[str],
+    message: str,
+) -> None:
+    config = tmp_path / "bridge.toml"
+    config.write_text(toml)
+    daemon = start_daemon("--config", str(config), *args)
+    assert daemon.proc.wait(30) == 2
+    daemon.stop()
+    assert message in daemon.output
+    assert "Traceback" not in daemon.output
+    time.sleep(0.3)
+    assert observer.frames == []
