@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from bridge.config import BridgeConfig
 from bridge.errors import ConfigError
 from bridge.escs.drivers import ft_command_dlc
+from bridge.output_loop import IMMEDIATE_MAX_RATE_FACTOR
 
 CKESC_THROTTLE_FRAME_BYTES = 8  # 12b, 14b (7 + tail) and 10b all fill the frame
 CKESC_TELEMETRY_BYTES = (7, 6, 8)  # MSG1, MSG2, MSG3 with their tail bytes
@@ -62,8 +63,12 @@ def bus_load(config: BridgeConfig) -> BusLoad:
     """The worst-case load of ``config`` (its ESC lists already filled in)."""
     escs = config.escs
     n = len(escs.ids)
+    # Immediate mode sends on fresh input too, at most IMMEDIATE_MAX_RATE_FACTOR x the rate.
+    rate_hz = config.rate_hz * (
+        IMMEDIATE_MAX_RATE_FACTOR if config.output.latency == "immediate" else 1
+    )
     if config.output.protocol == "ckesc":
-        frames = config.rate_hz * ckesc_groups(escs.ckesc_channels, escs.ckesc_command)
+        frames = rate_hz * ckesc_groups(escs.ckesc_channels, escs.ckesc_command)
         command_bits = frames * frame_bits(CKESC_THROTTLE_FRAME_BYTES)
         telemetry_frames = n * sum(escs.ckesc_msg_hz)
         telemetry_bits = n * sum(
@@ -71,7 +76,7 @@ def bus_load(config: BridgeConfig) -> BusLoad:
             for hz, size in zip(escs.ckesc_msg_hz, CKESC_TELEMETRY_BYTES, strict=True)
         )
     else:
-        frames = config.rate_hz * n
+        frames = rate_hz * n
         command_bits = frames * frame_bits(ft_command_dlc(escs.ft_crc))
         telemetry_frames = n * FT_TELEMETRY_FRAMES * escs.ft_telemetry_hz
         telemetry_bits = telemetry_frames * frame_bits(FT_TELEMETRY_BYTES)

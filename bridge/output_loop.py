@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 REOPEN_BACKOFF_S = (0.1, 2.0)  # first and longest wait before reopening a bus that is gone
 PARENT_CHECK_TICKS = 64  # how often a loop process checks that its supervisor still lives
+IMMEDIATE_MAX_RATE_FACTOR = 2  # latency = "immediate" sends at most this many times the rate
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,8 @@ class OutputLoop:
         mailbox, driver, slew = self._mailbox, self._driver, self._slew
         require_armed = self._config.output.require_armed
         period_ns, timeout_ns = self._period_ns, self._timeout_ns
+        min_gap_ns = period_ns // IMMEDIATE_MAX_RATE_FACTOR
+        keepalive_ns = period_ns * 3 // 2
         wake_fd = self._wake_fd
         monotonic_ns, sleep = time.monotonic_ns, time.sleep
         parent = os.getppid()
@@ -138,19 +141,19 @@ class OutputLoop:
         tick = 0
         last_ns = next_ns = monotonic_ns()
         while True:
-            woke_for_input = False
+            input_tick = False
             delay_ns = next_ns - monotonic_ns()
             if wake_fd is not None:
-                ready, _, _ = select.select([wake_fd], [], [], max(delay_ns, 0) / 1e9)
-                if ready:
+                while delay_ns > 0 and select.select([wake_fd], [], [], delay_ns / 1e9)[0]:
                     os.read(wake_fd, 4096)
-                    woke_for_input = True
+                    # Fresh input goes out now, or as soon as the frame-rate cap allows: never
+                    # within min_gap of the last frame, so an input flood cannot flood the bus.
+                    next_ns = min(next_ns, max(monotonic_ns(), last_ns + min_gap_ns))
+                    input_tick = True
+                    delay_ns = next_ns - monotonic_ns()
             elif delay_ns > 0:
                 sleep(delay_ns / 1e9)
             now = monotonic_ns()
-            if woke_for_input:
-                next_ns = now  # re-phase: this tick goes out at once, the next a period later
-                counters[immediate_i] += 1
             n = counters[lateness_count_i]
             lateness[n % LATENESS_RING] = (now - next_ns) // 1000
             counters[lateness_count_i] = n + 1
@@ -197,6 +200,12 @@ class OutputLoop:
 
             if stop_at_ns and now >= stop_at_ns:
                 return
+            if input_tick:
+                # Re-phased to the input: the fixed tick becomes a keep-alive that fires only
+                # when the next input is late, so it never races an input arriving on time.
+                counters[immediate_i] += 1
+                next_ns = now + keepalive_ns
+                continue
             next_ns += period_ns
             behind_ns = now - next_ns
             if behind_ns >= period_ns:
