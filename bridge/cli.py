@@ -170,6 +170,8 @@ def _run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s esc-bridge %(message)s"
     )
+    # pymavlink logs every new stream and replayed timestamp at INFO; the link counts those.
+    logging.getLogger("pymavlink").setLevel(logging.WARNING)
     from bridge import daemon  # pymavlink and the loop are only loaded for `run`
 
     config = run_config(args)

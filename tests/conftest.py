@@ -24,7 +24,7 @@ import pytest
 # The simulated autopilot speaks MAVLink 2, as current ArduPilot and PX4 do; pymavlink picks
 # its wire version from this variable when it is first imported.
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = ROOT.parent / "shared" / "data"

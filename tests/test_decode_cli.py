@@ -8,9 +8,9 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import ESC_BRIDGE, ROOT
 
 from bridge.capture import BadLine, read_capture
-from conftest import ESC_BRIDGE, ROOT
 
 CKESC_LOG = ROOT / "tests" / "data" / "ckesc-quad.log"
 FT_LOG = ROOT / "tests" / "data" / "ft-quad.log"
@@ -93,7 +93,7 @@ def test_other_formats_with_a_bad_line(
 ) -> None:
     frames = [m for m in read_capture(FT_LOG) if isinstance(m, can.Message)][:30]
     path = tmp_path / f"capture{suffix}"
-    with writer(path) as out:  # type: ignore[call-arg]
+    with writer(path) as out:
         for msg in frames:
             out.on_message_received(msg)
     lines = path.read_text().splitlines(keepends=True)

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from pymavlink import mavutil
-
 from conftest import SHARED_DATA, Daemon, Observer
+from pymavlink import mavutil
 from test_daemon_e2e import ARM_TIMEOUT_S, ckesc_throttles, pwm_to_throttle
 
 TLOGS = SHARED_DATA / "tlogs"
