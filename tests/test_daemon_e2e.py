@@ -256,3 +256,21 @@ def test_bad_config_stops_before_sending(
     assert "Traceback" not in daemon.output
     time.sleep(0.3)
     assert observer.frames == []
+
+
+def test_loop_goes_safe_and_exits_when_the_main_process_dies(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    daemon = start_daemon()
+    arm_at(autopilot, [1500, 1500, 1500, 1500])
+    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    killed_at = time.monotonic()
+    daemon.proc.kill()  # no signal handler, no flush: the loop process is on its own
+    daemon.proc.wait(5)
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    assert safe_at - killed_at < 0.5  # stale input (100 ms) or its parent gone, whichever first
+    time.sleep(1.5)  # the orphaned loop flushes safe values for 200 ms, then exits
+    quiet_since = time.monotonic()
+    time.sleep(0.5)
+    assert [m for m in observer.since(quiet_since) if ckesc_throttles(m)] == []
+    assert all(ckesc_throttles(m) in (None, (0, 0, 0, 0)) for m in observer.since(safe_at))
