@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
+from _stats import percentile
 
 from bridge.escs import ckesc, ft
 
@@ -149,11 +150,6 @@ WORKLOADS = [
 ]
 
 
-def _percentile(values: list[float], fraction: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, round(fraction * (len(ordered) - 1)))]
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=9, help="runs per workload (default 9)")
@@ -182,8 +178,8 @@ def main() -> int:
             verdict = "ok" if median >= workload.target_per_s else "MISSED"
             failed += verdict == "MISSED"
         print(
-            f"{workload.name:<34} {median:>10,.0f} {_percentile(rates, 0.1):>10,.0f} "
-            f"{_percentile(rates, 0.9):>10,.0f} {1e6 / median:>9.2f} "
+            f"{workload.name:<34} {median:>10,.0f} {percentile(rates, 0.1):>10,.0f} "
+            f"{percentile(rates, 0.9):>10,.0f} {1e6 / median:>9.2f} "
             f"{100 * BUS_SATURATION_FRAMES_PER_S / median:>8.1f}% {verdict:>8}"
         )
     return 1 if failed else 0

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+from _stats import percentile
 
 from bridge.escs import ckesc
 
@@ -296,17 +297,12 @@ def _latencies(sends: list[tuple[int, float]], frames: list[tuple[float, int]]) 
     return out
 
 
-def _pct(values: list[float], q: float) -> float:
-    if not values:
-        return float("nan")
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="measured time per case")
     parser.add_argument("--warmup", type=float, default=2.0, help="time discarded at the start")
+    parser.add_argument("--rates", type=int, nargs="+", default=[400, 1000], help="loop rates, Hz")
+    parser.add_argument("--escs", type=int, nargs="+", default=[8, 20], help="ESC counts")
     args = parser.parse_args()
     header = (
         f"{'case':<34} {'rate Hz':>8} {'dev %':>7} {'err p50':>8} {'err p99':>8} {'err max':>8} "
@@ -316,8 +312,8 @@ def main() -> int:
     print("period error and latency in µs; CPU in % of one core (daemon: main + loop process)")
     print(header)
     print("-" * len(header))
-    for rate_hz in (400, 1000):
-        for n_escs in (8, 20):
+    for rate_hz in args.rates:
+        for n_escs in args.escs:
             rows: list[Result | None] = []
             for latency in ("fixed", "immediate", None):
                 label = f"{'daemon ' + latency if latency else 'baseline sleep(period)'}"
@@ -331,24 +327,26 @@ def main() -> int:
                 print(
                     f"{f'{rate_hz} Hz x{n_escs} {label}':<34} {result.achieved_hz:>8.1f} "
                     f"{100 * (result.achieved_hz / rate_hz - 1):>+7.2f} "
-                    f"{_pct(err, 0.5):>8.0f} {_pct(err, 0.99):>8.0f} "
+                    f"{percentile(err, 0.5):>8.0f} {percentile(err, 0.99):>8.0f} "
                     f"{max(err) if err else float('nan'):>8.0f} "
                     f"{statistics.median(result.latency_us):>8.0f} "
-                    f"{_pct(result.latency_us, 0.99):>8.0f} {result.cpu_pct:>6.1f} "
+                    f"{percentile(result.latency_us, 0.99):>8.0f} {result.cpu_pct:>6.1f} "
                     f"{result.seen_pct:>6.1f}",
                     flush=True,
                 )
             fixed, immediate, base = rows
             if fixed is None or base is None:
                 continue
+
+            def p99_ratio(ours: list[float], theirs: list[float]) -> str:
+                return f"{percentile(ours, 0.99) / percentile(theirs, 0.99):>8.2f}"
+
             latency_ratio = (
-                f"{_pct(immediate.latency_us, 0.99) / _pct(base.latency_us, 0.99):>8.2f}"
-                if immediate is not None
-                else f"{'-':>8}"
+                p99_ratio(immediate.latency_us, base.latency_us) if immediate else f"{'-':>8}"
             )
             print(
                 f"{'  ratios daemon/baseline':<34} {'':>8} {'':>7} {'':>8} "
-                f"{_pct(fixed.period_err_us, 0.99) / _pct(base.period_err_us, 0.99):>8.2f} "
+                f"{p99_ratio(fixed.period_err_us, base.period_err_us)} "
                 f"{'':>8} {'':>8} {latency_ratio} {fixed.cpu_pct / base.cpu_pct:>6.2f}"
             )
     return 0

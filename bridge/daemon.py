@@ -34,6 +34,7 @@ from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
 log = logging.getLogger(__name__)
 
 SUPERVISE_PERIOD_S = 0.1
+ERROR_LOG_INTERVAL_S = 1.0  # CAN send failures are summed and logged at most this often
 LOOP_START_TIMEOUT_S = 15.0  # a spawned interpreter imports the bridge before it reports
 # Default input range of channel sources by MAVLink source, unless [mixer] input_range is set:
 # SERVO_OUTPUT_RAW and PX4's ACTUATOR_OUTPUT_STATUS (from actuator_outputs) carry PWM µs,
@@ -202,6 +203,7 @@ class Supervisor:
         self._stop = threading.Event()
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
+        self._errors_logged_at = 0.0
 
     def stop(self) -> None:
         self._stop.set()
@@ -268,15 +270,16 @@ class Supervisor:
             self._report(severity, text)
         self._reported_state = state
         errors = stats["send_errors"]
-        if errors != self._last_errors:
+        now = time.monotonic()
+        if errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
             log.warning(
-                "CAN send failures: %d in the last %.1f s (%d in all; bus reopened %d times)",
+                "CAN send failures: %d since the last report (%d in all; bus reopened %d times)",
                 errors - self._last_errors,
-                SUPERVISE_PERIOD_S,
                 errors,
                 stats["bus_reopens"],
             )
             self._last_errors = errors
+            self._errors_logged_at = now
 
     def _report(self, severity: int, text: str) -> None:
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO

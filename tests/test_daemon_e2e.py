@@ -4,6 +4,7 @@ and a python-can observer on the cross-process bus decoding what the bridge send
 from __future__ import annotations
 
 import itertools
+import math
 import signal
 import time
 from collections.abc import Callable
@@ -12,6 +13,7 @@ from pathlib import Path
 import can
 import pytest
 from conftest import Autopilot, Daemon, Observer
+from pymavlink import mavutil
 
 from bridge.escs import ckesc, ft
 
@@ -274,3 +276,60 @@ def test_loop_goes_safe_and_exits_when_the_main_process_dies(
     time.sleep(0.5)
     assert [m for m in observer.since(quiet_since) if ckesc_throttles(m)] == []
     assert all(ckesc_throttles(m) in (None, (0, 0, 0, 0)) for m in observer.since(safe_at))
+
+
+def feed_until(
+    send: Callable[[], None], observer: Observer, want: tuple[int, ...], timeout_s: float
+) -> float:
+    """Call ``send`` every 20 ms until a frame with throttles ``want`` is seen; its time."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout_s:
+        send()
+        time.sleep(0.02)
+        for ts, msg in observer.frames[-20:]:
+            if ts >= start and ckesc_throttles(msg) == want:
+                return ts
+    raise AssertionError(f"no frame with throttles {want} within {timeout_s} s")
+
+
+def test_px4_hil_actuator_controls(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    """PX4 SITL: normalized 0..1 controls, armed by the message's own mode flag."""
+    start_daemon("--source", "hil_actuator_controls")
+    armed = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+
+    def send(controls: list[float], mode: int) -> Callable[[], None]:
+        def once() -> None:
+            autopilot.heartbeat()  # disarmed HEARTBEAT: the HIL mode flag arms
+            autopilot.mav.hil_actuator_controls_send(
+                int(time.monotonic() * 1e6), controls + [0.0] * 12, mode, 0
+            )
+
+        return once
+
+    feed_until(send([0.0, 0.25, 0.5, 1.0], armed), observer, (0, 500, 1000, 2000), ARM_TIMEOUT_S)
+    feed_until(send([0.0, 0.25, 0.5, 1.0], 0), observer, (0, 0, 0, 0), 2.0)
+
+
+def test_nan_input_goes_safe(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    """PX4 ACTUATOR_OUTPUT_STATUS (PWM µs); a NaN among the used outputs means safe values."""
+    start_daemon("--source", "actuator_output_status")
+    autopilot.armed = True
+
+    def send(outputs: list[float]) -> Callable[[], None]:
+        def once() -> None:
+            autopilot.heartbeat()
+            autopilot.mav.actuator_output_status_send(
+                int(time.monotonic() * 1e6), 0xF, outputs + [0.0] * 28
+            )
+
+        return once
+
+    feed_until(send([1500.0, 1250.0, 1750.0, 2000.0]), observer, (1000, 500, 1500, 2000), 10.0)
+    nan_at = time.monotonic()
+    safe_at = feed_until(send([1500.0, math.nan, 1500.0, 1500.0]), observer, (0, 0, 0, 0), 2.0)
+    assert safe_at - nan_at < 0.2  # the next tick after the NaN input is read
+    feed_until(send([1500.0, 1500.0, 1500.0, 1500.0]), observer, (1000, 1000, 1000, 1000), 2.0)
