@@ -122,6 +122,16 @@ def _is_hex32(v: Any) -> bool:
     return True
 
 
+def _is_axis_map(v: Any) -> bool:
+    return isinstance(v, dict) and all(
+        k in ("roll", "pitch", "yaw", "thrust")
+        and isinstance(c, int)
+        and not isinstance(c, bool)
+        and 1 <= c <= 32
+        for k, c in v.items()
+    )
+
+
 def _is_report_rates(v: Any) -> bool:
     return (
         isinstance(v, list | tuple)
@@ -187,6 +197,12 @@ class MixerConfig:
         _optional(_range_pair),
         "input range of every channel source, overriding the mixer's (default: the mixer's, "
         "PWM [1000, 2000] µs; [0, 1] for hil_actuator_controls)",
+    )
+    axis_channels: Mapping[str, int] | None = key(
+        None,
+        _optional(_check(_is_axis_map, "a table of roll, pitch, yaw, thrust = channel 1..32")),
+        "geometry mixers: take roll, pitch, yaw and thrust from these channels, scaled from "
+        "the channel input range",
     )
 
 

@@ -28,7 +28,7 @@ from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import LinkError
 from bridge.mailbox import CommandMailbox, LoopState, LoopStats
 from bridge.mavlink_in import MavlinkLink
-from bridge.mixer import Mixer, MixerDefinition, load_mixer
+from bridge.mixer import PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
 from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,7 @@ class Plan:
     config: BridgeConfig
     mixer: MixerDefinition
     load_text: str
+    input_range: tuple[float, float] | None  # the channel range, when the config sets it
 
 
 def plan(config: BridgeConfig) -> Plan:
@@ -80,20 +81,29 @@ def plan(config: BridgeConfig) -> Plan:
         definition = definition.with_input_range(*input_range)
     config = with_esc_count(config, len(definition.outputs))
     load = check_bus_load(config)
-    return Plan(config, definition, load.describe())
+    return Plan(config, definition, load.describe(), input_range)
 
 
 class MixerSink:
     """Receives the autopilot's outputs on the MAVLink thread, mixes, fills the mailbox."""
 
-    def __init__(self, mixer: Mixer, mailbox: CommandMailbox, wake: Connection | None) -> None:
+    def __init__(
+        self,
+        mixer: Mixer,
+        mailbox: CommandMailbox,
+        wake: Connection | None,
+        axes: AxisChannels | None = None,
+    ) -> None:
         self._mixer = mixer
+        self._axes = axes
         self._mailbox = mailbox
         self._wake_fd = wake.fileno() if wake is not None else None
         self._armed = False
         self.mixer_errors = 0
 
     def on_actuators(self, values: list[float], time_ns: int) -> None:
+        if self._axes is not None:
+            self._axes.fill(values)
         try:
             fractions = self._mixer.mix(values, self._armed)
         except Exception:  # any mixer fault must become a safe output, never a crash
@@ -198,7 +208,11 @@ class Supervisor:
             log_level=logging.getLogger().getEffectiveLevel(),
         )
         self.runner = LoopRunner(setup, self.mailbox, self.stats)
-        self.sink = MixerSink(Mixer(plan.mixer), self.mailbox, self.runner.wake_writer)
+        axes = None
+        if config.mixer.axis_channels:
+            channel_range = plan.input_range or PWM_RANGE_US
+            axes = AxisChannels(config.mixer.axis_channels, channel_range)
+        self.sink = MixerSink(Mixer(plan.mixer), self.mailbox, self.runner.wake_writer, axes)
         self.link = MavlinkLink(config.mavlink, self.sink)
         self._stop = threading.Event()
         self._reported_state = LoopState.STARTING

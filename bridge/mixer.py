@@ -425,6 +425,33 @@ def _fit_scale(
             s = 0.0
 
 
+class AxisChannels:
+    """Fills the roll/pitch/yaw/thrust inputs from configured channels, for geometry mixers
+    driven by channels (e.g. a companion controller's outputs) rather than by
+    ACTUATOR_CONTROL_TARGET. A channel's input range maps onto the axis's range: the low end to
+    -1 (thrust 0), the high end to +1; values outside it are limited, NaN stays NaN."""
+
+    def __init__(self, channels: Mapping[str, int], input_range: tuple[float, float]) -> None:
+        low, high = input_range
+        self._map = [
+            (
+                CHANNEL_COUNT + AXIS_NAMES.index(axis),
+                channel - 1,
+                low,
+                high - low,
+                _AXIS_RANGES[axis],
+            )
+            for axis, channel in channels.items()
+        ]
+
+    def fill(self, inputs: list[float]) -> None:
+        """Write the axis inputs of ``inputs`` (a full input vector) from its channels."""
+        for slot, channel, low, span, (axis_low, axis_high) in self._map:
+            fraction = (inputs[channel] - low) / span
+            value = axis_low + fraction * (axis_high - axis_low)
+            inputs[slot] = min(max(value, axis_low), axis_high) if value == value else value
+
+
 class Mixer:
     """Maps the 36-entry input vector (order :data:`INPUT_NAMES`) to one fraction per output.
 

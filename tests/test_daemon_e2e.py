@@ -333,3 +333,30 @@ def test_nan_input_goes_safe(
     safe_at = feed_until(send([1500.0, math.nan, 1500.0, 1500.0]), observer, (0, 0, 0, 0), 2.0)
     assert safe_at - nan_at < 0.2  # the next tick after the NaN input is read
     feed_until(send([1500.0, 1500.0, 1500.0, 1500.0]), observer, (1000, 1000, 1000, 1000), 2.0)
+
+
+def test_geometry_mixer_from_configured_channels(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer, tmp_path: Path
+) -> None:
+    """quad-x with roll, pitch, thrust, yaw on channels 1..4 (PWM, 1500 = centre)."""
+    config = tmp_path / "bridge.toml"
+    config.write_text(
+        '[mixer]\nname = "quad-x"\naxis_channels = { roll = 1, pitch = 2, thrust = 3, yaw = 4 }\n'
+    )
+    start_daemon("--config", str(config))
+    arm_at(autopilot, [1500, 1500, 1500, 1500])  # level, half thrust
+    _, hover = observer.wait_for(
+        lambda m: (t := ckesc_throttles(m)) is not None and len(set(t)) == 1 and t[0] > 500,
+        ARM_TIMEOUT_S,
+    )
+    level = ckesc_throttles(hover)
+    assert level is not None
+    autopilot.pwm = [1700, 1500, 1500, 1500]  # roll right: left motors up, right motors down
+    # quad-x: 1 front right, 2 rear left, 3 front left, 4 rear right
+    _, rolled = observer.wait_for(
+        lambda m: (t := ckesc_throttles(m)) is not None and t[1] > level[1], 3.0
+    )
+    t = ckesc_throttles(rolled)
+    assert t is not None
+    assert t[1] == t[2] > level[0] > t[0] == t[3]
+    assert abs((t[1] - level[0]) - (level[0] - t[0])) <= 2  # symmetric about hover
