@@ -247,6 +247,7 @@ class Supervisor:
             self.runner.request_stop()
             self.runner.join(config.output.shutdown_flush_ms / 1000 + 5.0)
             self._watch()
+            self._log_loop_summary()
             log.info("stopped after sending safe values for %d ms", config.output.shutdown_flush_ms)
             return 0
         finally:
@@ -294,6 +295,28 @@ class Supervisor:
             )
             self._last_errors = errors
             self._errors_logged_at = now
+
+    def _log_loop_summary(self) -> None:
+        stats = self.stats
+        lateness = sorted(stats.lateness_us())
+        if not lateness:
+            return
+
+        def at(fraction: float) -> int:
+            return lateness[min(len(lateness) - 1, int(fraction * len(lateness)))]
+
+        log.info(
+            "output loop: %d ticks, %d frames, %d send errors, %d overruns; wake-up lateness "
+            "p50 %d µs, p99 %d µs, max %d µs (last %d ticks)",
+            stats["ticks"],
+            stats["frames_sent"],
+            stats["send_errors"],
+            stats["overruns"],
+            at(0.5),
+            at(0.99),
+            lateness[-1],
+            len(lateness),
+        )
 
     def _report(self, severity: int, text: str) -> None:
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO

@@ -194,6 +194,3 @@ class LoopStats:
             return list(self._lateness[:n])
         start = count % LATENESS_RING
         return list(self._lateness[start:]) + list(self._lateness[:start])
-
-    def snapshot(self) -> dict[str, int]:
-        return {name: int(self._counters[i]) for i, name in enumerate(STAT_FIELDS)}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 import signal
 import time
 from collections.abc import Callable
@@ -177,6 +178,7 @@ def test_sigterm_sends_safe_values_then_exits_zero(
     assert all(t == (0, 0, 0, 0) for t in safe)
     assert 40 <= len(safe) <= 120
     assert "stopped after sending safe values for 200 ms" in daemon.output
+    assert re.search(r"output loop: \d+ ticks, \d+ frames, 0 send errors", daemon.output)
 
 
 def test_sigint_is_handled_like_sigterm(
