@@ -105,9 +105,28 @@ RUN_OVERRIDES: dict[str, tuple[str, str, Callable[[str], Any], str]] = {
 }
 
 
+RUN_METAVARS = {
+    "--mavlink": "URL",
+    "--source": "MESSAGE",
+    "--can-interface": "NAME",
+    "--can-channel": "CHANNEL",
+    "--bitrate": "BPS",
+    "--protocol": "ckesc|ft",
+    "--rate": "HZ",
+    "--latency": "fixed|immediate",
+    "--mixer": "NAME|FILE",
+}
+
+
 def _add_run_overrides(parser: argparse.ArgumentParser) -> None:
     for flag, (section, key, kind, text) in RUN_OVERRIDES.items():
-        parser.add_argument(flag, type=kind, default=None, help=f"{text} ([{section}] {key})")
+        parser.add_argument(
+            flag,
+            type=kind,
+            default=None,
+            metavar=RUN_METAVARS.get(flag, "VALUE"),
+            help=f"{text} ([{section}] {key})",
+        )
     parser.add_argument(
         "--can-option",
         action="append",
