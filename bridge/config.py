@@ -152,10 +152,6 @@ def key(default: Any, check: Callable[[Any], str | None], doc: str) -> Any:
     return field(default=default, metadata={"check": check, "doc": doc})
 
 
-def _list_key(check: Callable[[Any], str | None], doc: str, default: tuple[int, ...] = ()) -> Any:
-    return field(default=default, metadata={"check": check, "doc": doc, "list": True})
-
-
 @dataclass(frozen=True)
 class MavlinkConfig:
     url: str = key("udpin:0.0.0.0:14550", _string, "pymavlink connection string of the autopilot")
@@ -256,7 +252,8 @@ class CanConfig:
 
 @dataclass(frozen=True)
 class EscsConfig:
-    ids: tuple[int, ...] = _list_key(
+    ids: tuple[int, ...] = key(
+        (),
         _int_list(1, 125),
         "ID of the ESC on each mixer output, in output order (CKESC node ID / FT ESC ID); "
         "default 1..N",
@@ -264,7 +261,8 @@ class EscsConfig:
     ckesc_command: CkescCommand = key(
         "12b", _choice("12b", "14b", "10b"), "CKESC throttle frame (14b: <= 4 ESCs; 10b: <= 6)"
     )
-    ckesc_channels: tuple[int, ...] = _list_key(
+    ckesc_channels: tuple[int, ...] = key(
+        (),
         _int_list(1, 20),
         "CKESC throttle channel of each output (set in the ESC with Set ID); default 1..N",
     )

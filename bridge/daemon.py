@@ -172,9 +172,7 @@ class LoopRunner:
         return self._thread is not None and self._thread.is_alive()
 
     def request_stop(self) -> None:
-        self._stats["stop_requested"] = 1
-        if self._loop is not None:
-            self._loop.request_stop()
+        self._stats["stop_requested"] = 1  # read by the loop every tick, in a process or thread
 
     def join(self, timeout_s: float) -> None:
         if self._process is not None:
@@ -202,10 +200,7 @@ class Supervisor:
         self.mailbox = CommandMailbox(n)
         self.stats = LoopStats()
         setup = LoopSetup(
-            config=config,
-            slew_up_per_s=tuple(o.slew_up_per_s for o in plan.mixer.outputs),
-            slew_down_per_s=tuple(o.slew_down_per_s for o in plan.mixer.outputs),
-            log_level=logging.getLogger().getEffectiveLevel(),
+            config=config, mixer=plan.mixer, log_level=logging.getLogger().getEffectiveLevel()
         )
         self.runner = LoopRunner(setup, self.mailbox, self.stats)
         axes = None
@@ -218,6 +213,7 @@ class Supervisor:
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
         self._errors_logged_at = 0.0
+        self._tick_errors = 0
 
     def stop(self) -> None:
         self._stop.set()
@@ -257,9 +253,7 @@ class Supervisor:
 
     def _await_loop_start(self) -> None:
         deadline = time.monotonic() + LOOP_START_TIMEOUT_S
-        while self.stats["state"] == LoopState.STARTING:
-            if not self.runner.alive() and self.stats["state"] == LoopState.STARTING:
-                break
+        while self.stats["state"] == LoopState.STARTING and self.runner.alive():
             if time.monotonic() > deadline:
                 raise LinkError(f"output loop did not start within {LOOP_START_TIMEOUT_S:.0f} s")
             time.sleep(0.01)
@@ -284,6 +278,11 @@ class Supervisor:
             severity, text = STATE_REPORTS[state]
             self._report(severity, text)
         self._reported_state = state
+        tick_errors = stats["tick_errors"]
+        if tick_errors != self._tick_errors:
+            self._report(SEVERITY_CRITICAL, "ESC out: FAULT encoding commands, motors safe")
+            log.error("%d ticks could not encode commands; safe values were sent", tick_errors)
+            self._tick_errors = tick_errors
         errors = stats["send_errors"]
         now = time.monotonic()
         if errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
@@ -306,12 +305,15 @@ class Supervisor:
             return lateness[min(len(lateness) - 1, int(fraction * len(lateness)))]
 
         log.info(
-            "output loop: %d ticks, %d frames, %d send errors, %d overruns; wake-up lateness "
-            "p50 %d µs, p99 %d µs, max %d µs (last %d ticks)",
+            "output loop: %d ticks, %d frames, %d send errors, %d overruns, %d immediate "
+            "sends, %d tick errors; wake-up lateness p50 %d µs, p99 %d µs, max %d µs "
+            "(last %d ticks)",
             stats["ticks"],
             stats["frames_sent"],
             stats["send_errors"],
             stats["overruns"],
+            stats["immediate_sends"],
+            stats["tick_errors"],
             at(0.5),
             at(0.99),
             lateness[-1],

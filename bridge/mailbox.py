@@ -139,18 +139,16 @@ class CommandMailbox:
 
 STAT_FIELDS = (
     "state",  # LoopState
-    "state_changes",
     "ticks",
     "frames_sent",
     "send_errors",
     "bus_reopens",
     "overruns",  # ticks skipped because the loop woke more than a period late
     "immediate_sends",  # ticks sent at once for a fresh input (latency = "immediate")
+    "tick_errors",  # ticks whose commands could not be encoded: safe values were sent instead
     "realtime",  # 1 when the loop runs with SCHED_FIFO priority
     "stop_requested",  # written by the supervisor: the one field the loop only reads
     "lateness_count",  # entries written to the lateness ring
-    "last_input_seq",
-    "last_send_ns",
 )
 LATENESS_RING = 1 << 16  # wake-up lateness samples kept, µs; enough for 160 s at 400 Hz
 

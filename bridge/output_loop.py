@@ -20,7 +20,6 @@ import os
 import random
 import select
 import signal
-import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -32,7 +31,7 @@ from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import make_driver
 from bridge.mailbox import LATENESS_RING, CommandMailbox, LoopState, LoopStats
-from bridge.mixer import SlewLimiter
+from bridge.mixer import MixerDefinition, SlewLimiter
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +45,7 @@ class LoopSetup:
     """Everything the loop needs, picklable so it can start a process of its own."""
 
     config: BridgeConfig  # with the ESC lists filled in
-    slew_up_per_s: tuple[float, ...]
-    slew_down_per_s: tuple[float, ...]
+    mixer: MixerDefinition  # the loop applies its slew limits
     log_level: int = logging.INFO
 
 
@@ -71,17 +69,15 @@ class OutputLoop:
         mailbox: CommandMailbox,
         stats: LoopStats,
         wake_fd: int | None,
-        stop: threading.Event | None = None,
     ) -> None:
         config = setup.config
         self._config = config
         self._mailbox = mailbox
         self._stats = stats
         self._wake_fd = wake_fd if config.output.latency == "immediate" else None
-        self._stop = stop or threading.Event()
         self._driver = make_driver(config)
-        self._slew = SlewLimiter(setup.slew_up_per_s, setup.slew_down_per_s)
-        self._zeros = [0.0] * mailbox.n_outputs
+        self._slew = SlewLimiter.for_definition(setup.mixer)
+        self._zeros = [0.0] * len(setup.mixer.outputs)
         self._period_ns = round(1e9 / (config.rate_hz * self._driver.ticks_per_cycle))
         self._timeout_ns = config.output.input_timeout_ms * 1_000_000
         self._flush_ns = config.output.shutdown_flush_ms * 1_000_000
@@ -90,7 +86,8 @@ class OutputLoop:
         self._backoff_s = REOPEN_BACKOFF_S[0]
 
     def request_stop(self) -> None:
-        self._stop.set()
+        """Start the shutdown flush (also what the supervisor's ``stop_requested`` does)."""
+        self._stats["stop_requested"] = 1
 
     def run(self) -> None:
         stats = self._stats
@@ -117,14 +114,10 @@ class OutputLoop:
         # One flat function on purpose: locals, not attribute look-ups, on every tick.
         counters = self._stats.counters
         slot = self._stats.slot
-        state_i, changes_i, ticks_i = slot("state"), slot("state_changes"), slot("ticks")
-        sent_i, lateness_count_i = slot("frames_sent"), slot("lateness_count")
+        state_i, ticks_i, sent_i = slot("state"), slot("ticks"), slot("frames_sent")
         overruns_i, immediate_i = slot("overruns"), slot("immediate_sends")
-        stop_i, seq_i, last_send_i = (
-            slot("stop_requested"),
-            slot("last_input_seq"),
-            slot("last_send_ns"),
-        )
+        lateness_count_i, stop_i = slot("lateness_count"), slot("stop_requested")
+        tick_errors_i = slot("tick_errors")
         lateness = self._stats.lateness_ring
         mailbox, driver, slew = self._mailbox, self._driver, self._slew
         require_armed = self._config.output.require_armed
@@ -159,9 +152,7 @@ class OutputLoop:
             counters[lateness_count_i] = n + 1
 
             if not stop_at_ns and (
-                self._stop.is_set()
-                or counters[stop_i]
-                or (tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
+                counters[stop_i] or (tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
             ):
                 stop_at_ns = now + self._flush_ns
             commands = mailbox.read()
@@ -178,22 +169,23 @@ class OutputLoop:
             else:
                 new_state = LoopState.RUNNING
             if new_state != state:
+                if new_state == LoopState.RUNNING:
+                    slew.reset(self._zeros)  # after any safe spell, spool up from stopped
                 state = new_state
                 counters[state_i] = state
-                counters[changes_i] += 1
 
+            frames = None
             if state == LoopState.RUNNING and commands is not None:
-                counters[seq_i] = commands.seq
-                frames = driver.tick_frames(
-                    tick, slew.apply(commands.fractions, (now - last_ns) / 1e9)
-                )
-            else:
-                slew.reset(self._zeros)  # after any failsafe, spool up from stopped again
+                try:
+                    frames = driver.tick_frames(
+                        tick, slew.apply(commands.fractions, (now - last_ns) / 1e9)
+                    )
+                # Any fault in mixing or encoding means safe values this tick, never a dead loop.
+                except Exception:  # noqa: BLE001
+                    counters[tick_errors_i] += 1
+            if frames is None:
                 frames = driver.safe_frames(tick)
-            sent = self._send(frames, now)
-            counters[sent_i] += sent
-            if sent:
-                counters[last_send_i] = monotonic_ns()
+            counters[sent_i] += self._send(frames, now)
             counters[ticks_i] += 1
             last_ns = now
             tick += 1
