@@ -11,6 +11,7 @@ Every key is documented in ``config/README.md``; a test keeps that page and this
 from __future__ import annotations
 
 import math
+import socket
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -140,6 +141,38 @@ def _is_report_rates(v: Any) -> bool:
     )
 
 
+def _string_list(v: Any) -> str | None:
+    ok = isinstance(v, list) and all(isinstance(x, str) and x for x in v)
+    return None if ok else "a list of non-empty strings"
+
+
+def _pole_pairs(v: Any) -> str | None:
+    def ok(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= 100
+
+    if ok(v) or (isinstance(v, list) and v and all(ok(x) for x in v)):
+        return None
+    return "an integer 1..100, or a list of them (one per motor)"
+
+
+def _key_segment(v: Any) -> str | None:
+    # A Zenoh key segment: no separators or wildcards, so it names exactly one vehicle.
+    ok = isinstance(v, str) and v != "" and all(c.isalnum() or c in "-_." for c in v)
+    return None if ok else "a name of letters, digits, '-', '_' or '.'"
+
+
+def _key_prefix(v: Any) -> str | None:
+    ok = (
+        isinstance(v, str)
+        and v != ""
+        and not v.startswith("/")
+        and not v.endswith("/")
+        and "//" not in v
+        and not any(c in v for c in "*$?#")
+    )
+    return None if ok else "a Zenoh key expression without wildcards or leading/trailing '/'"
+
+
 def _choice_int(*choices: int) -> Callable[[Any], str | None]:
     return _check(
         lambda v: isinstance(v, int) and v in choices,
@@ -181,6 +214,17 @@ class MavlinkConfig:
         "MAVLink 2 signing key; when set, unsigned or badly signed messages are rejected",
     )
     heartbeat_hz: float = key(1.0, _float_range(0.1, 10), "rate of the bridge's own HEARTBEAT")
+    outputs: tuple[str, ...] = key(
+        (),
+        _string_list,
+        "extra MAVLink connections (e.g. udpout:192.168.1.10:14550 to a GCS) that get the "
+        "bridge's HEARTBEAT, STATUSTEXT and ESC telemetry",
+    )
+    esc_status_hz: float = key(10.0, _float_range(0, 100), "ESC_STATUS rate; 0 = off")
+    esc_info_hz: float = key(1.0, _float_range(0, 100), "ESC_INFO rate; 0 = off")
+    esc_telemetry_hz: float = key(
+        10.0, _float_range(0, 100), "ArduPilot ESC_TELEMETRY_x_TO_y rate; 0 = off"
+    )
 
 
 @dataclass(frozen=True)
@@ -292,6 +336,75 @@ class EscsConfig:
 
 
 @dataclass(frozen=True)
+class TelemetryConfig:
+    timeout_ms: int = key(
+        500, _int_range(20, 10_000), "an ESC is offline when no frame came for this long"
+    )
+    pole_pairs: int | tuple[int, ...] = key(
+        7, _pole_pairs, "motor pole pairs (FT erpm / pole pairs = rpm): one, or one per motor"
+    )
+    max_temp_c: float | None = key(
+        100.0,
+        _optional(_float_range(0, 250)),
+        "any reported temperature above this raises OVER_TEMPERATURE",
+    )
+    max_current_a: float | None = key(
+        None, _optional(_float_range(0, 1000)), "|current| above this raises OVER_CURRENT"
+    )
+    max_rpm: int | None = key(
+        None, _optional(_int_range(1, 1_000_000)), "|rpm| above this raises OVER_RPM"
+    )
+    error_burst: int = key(
+        5, _int_range(1, 10_000), "this many CRC/format errors within 1 s raise GENERIC"
+    )
+    learn_ids: bool = key(
+        False,
+        _bool,
+        "CKESC: ask the ESCs for their node IDs (GET_ESC_ID) at start and map them to motors "
+        "by throttle channel, instead of trusting [escs] ids",
+    )
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    enabled: bool = key(True, _bool, "publish telemetry over Zenoh")
+    mode: Literal["peer", "client", "router"] = key(
+        "peer", _choice("peer", "client", "router"), "Zenoh session mode"
+    )
+    connect: tuple[str, ...] = key(
+        (), _string_list, "endpoints to connect to, e.g. tcp/192.168.1.2:7447 (a zenohd router)"
+    )
+    listen: tuple[str, ...] = key((), _string_list, "endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    multicast_scouting: bool = key(
+        True, _bool, "find peers and routers on the LAN by multicast (Zenoh's default)"
+    )
+    vehicle: str | None = key(
+        None, _optional(_key_segment), "the vehicle's name in the keys (default: the host name)"
+    )
+    prefix: str | None = key(
+        None, _optional(_key_prefix), "key prefix (default esc-bridge/<vehicle>)"
+    )
+    telemetry_hz: float = key(10.0, _float_range(0.1, 200), "cap on each esc/<n>/telemetry")
+    status_hz: float = key(10.0, _float_range(0.1, 200), "cap on esc/status")
+    info_hz: float = key(1.0, _float_range(0.1, 200), "cap on each esc/<n>/info")
+    health_hz: float = key(2.0, _float_range(0.1, 200), "cap on bridge/health")
+    actuators_hz: float = key(
+        10.0, _float_range(0.1, 200), "cap on actuators/input and actuators/output"
+    )
+
+    def key_prefix(self) -> str:
+        """The prefix every key is published under: ``prefix``, or esc-bridge/<vehicle>."""
+        return self.prefix or f"esc-bridge/{self.vehicle or default_vehicle_name()}"
+
+
+def default_vehicle_name() -> str:
+    """The host name, made a valid key segment (other characters become '_')."""
+    return (
+        "".join(c if c.isalnum() or c in "-_." else "_" for c in socket.gethostname()) or "vehicle"
+    )
+
+
+@dataclass(frozen=True)
 class BridgeConfig:
     """The whole validated configuration."""
 
@@ -301,6 +414,8 @@ class BridgeConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     can: CanConfig = field(default_factory=CanConfig)
     escs: EscsConfig = field(default_factory=EscsConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
 
     @property
     def rate_hz(self) -> int:
@@ -317,6 +432,8 @@ SECTIONS: dict[str, type[Any]] = {
     "output": OutputConfig,
     "can": CanConfig,
     "escs": EscsConfig,
+    "telemetry": TelemetryConfig,
+    "zenoh": ZenohConfig,
 }
 
 
@@ -421,6 +538,12 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
                 f"{config.source}: [escs] {name} has {len(given)} entries but mixer "
                 f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
             )
+    pole_pairs = config.telemetry.pole_pairs
+    if isinstance(pole_pairs, tuple) and len(pole_pairs) != n_outputs:
+        raise ConfigError(
+            f"{config.source}: [telemetry] pole_pairs has {len(pole_pairs)} entries but mixer "
+            f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
+        )
     default = tuple(range(1, n_outputs + 1))
     escs = replace(escs, ids=escs.ids or default, ckesc_channels=escs.ckesc_channels or default)
     if config.output.protocol == "ckesc":

@@ -1,0 +1,164 @@
+"""The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
+
+Everything on the bus is read, including the bridge's own commands (on socketcan and
+udp_multicast another handle of the same bus sees them): the recorder, when there is one,
+gets every frame; :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs.
+A malformed frame is counted against the ESC its ID names and dropped; nothing that arrives
+stops the reader.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import can
+
+from bridge.errors import CodecError, LinkError
+from bridge.escs import Protocol, ckesc, decode, ft
+from bridge.telemetry.state import EscTable
+
+log = logging.getLogger(__name__)
+
+RECV_TIMEOUT_S = 0.1  # how often the reader notices close()
+JOIN_TIMEOUT_S = 2.0
+# GET_ESC_ID: each ESC answers after (node_id % 32) x 2 ms, so 62 ms covers every node.
+GET_ESC_ID_WINDOW_S = 0.1
+
+Recorder = Callable[[can.Message], None]
+
+
+@dataclass
+class ReaderStats:
+    """Counters of the CAN reader, updated live."""
+
+    frames: int = 0
+    """Every frame read."""
+    telemetry: int = 0
+    """Frames that updated an ESC's state."""
+    malformed: int = 0
+    """Frames in our protocol's space that failed to decode (CRC, DLC, tail byte, ...)."""
+    read_errors: int = 0
+    """Failures of the bus itself while reading."""
+
+
+def node_of(msg: can.Message, protocol: Protocol) -> int | None:
+    """The ESC a (possibly malformed) frame's ID names, or None if it names none."""
+    if not msg.is_extended_id or msg.is_error_frame:
+        return None
+    if protocol == "ft":
+        return ft.parse_id(msg.arbitration_id)[0] if msg.arbitration_id >> 16 == 0 else None
+    return int(msg.arbitration_id & 0x7F) or None  # node 0 is the host
+
+
+class CanReader:
+    """Reads a bus in a thread of its own and feeds ``table``; :meth:`close` stops it.
+
+    ``bus`` is the bus, or a function returning the bus to read now (None: none at the moment),
+    for an interface only one handle can open: the output loop's thread then owns the handle,
+    reopens it when it fails, and the reader reads whichever handle is current.
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC | Callable[[], can.BusABC | None],
+        table: EscTable,
+        protocol: Protocol,
+        recorder: Recorder | None = None,
+    ) -> None:
+        self._bus_source = bus if callable(bus) else lambda: bus
+        self._table = table
+        self._protocol = protocol
+        self._recorder = recorder
+        self.stats = ReaderStats()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="can-reader", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop the thread (the bus stays open: whoever opened it shuts it down)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(JOIN_TIMEOUT_S)
+
+    def _run(self) -> None:
+        failures = 0
+        while not self._stop.is_set():
+            bus = self._bus_source()
+            if bus is None:
+                self._stop.wait(RECV_TIMEOUT_S)
+                continue
+            try:
+                msg = bus.recv(RECV_TIMEOUT_S)
+            except (can.CanError, OSError) as exc:
+                self.stats.read_errors += 1
+                failures += 1
+                if failures == 1 or failures % 100 == 0:
+                    log.warning("CAN read failed (%d in all): %s", self.stats.read_errors, exc)
+                self._stop.wait(RECV_TIMEOUT_S)  # a bus that is gone must not spin the CPU
+                continue
+            failures = 0
+            if msg is not None:
+                self.handle(msg, time.monotonic_ns())
+
+    def handle(self, msg: can.Message, now_ns: int) -> None:
+        """Record, decode and apply one frame (the reader thread calls this for each)."""
+        stats = self.stats
+        stats.frames += 1
+        if self._recorder is not None:
+            self._recorder(msg)
+        try:
+            frame = decode(msg, self._protocol, self._table.node_set)
+        except CodecError:
+            stats.malformed += 1
+            self._table.count_error(node_of(msg, self._protocol), now_ns)
+            return
+        if frame is not None and self._table.ingest(frame, now_ns):
+            stats.telemetry += 1
+
+
+def learn_ckesc_ids(
+    bus: can.BusABC, channels: Sequence[int], window_s: float = GET_ESC_ID_WINDOW_S
+) -> dict[int, int]:
+    """Ask every CKESC on ``bus`` for its node ID (GET_ESC_ID) and map throttle channels to
+    node IDs: ``{channel: node_id}`` for each answering ESC whose channel is in ``channels``.
+
+    Raises:
+        LinkError: two ESCs answer with the same throttle channel (they would spin together).
+    """
+    request = ckesc.CkescFrame(
+        ckesc.default_priority(ckesc.GetEscIdRequest()),
+        ckesc.HOST_NODE_ID,
+        None,
+        0,
+        ckesc.GetEscIdRequest(),
+    )
+    bus.send(ckesc.encode(request), timeout=0.1)
+    deadline = time.monotonic() + window_s
+    found: dict[int, int] = {}
+    while (left := deadline - time.monotonic()) > 0:
+        msg = bus.recv(left)
+        if msg is None:
+            break
+        try:
+            frame = ckesc.decode(msg)
+        except CodecError:
+            continue
+        if frame is None or not isinstance(frame.message, ckesc.GetEscIdAnswer):
+            continue
+        answer = frame.message
+        if answer.throttle_channel not in channels:
+            continue
+        other = found.get(answer.throttle_channel)
+        if other is not None and other != answer.node_id:
+            raise LinkError(
+                f"CKESC nodes {other} and {answer.node_id} both follow throttle channel "
+                f"{answer.throttle_channel}; give each ESC its own channel (Set ID)"
+            )
+        found[answer.throttle_channel] = answer.node_id
+    return found

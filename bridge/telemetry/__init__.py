@@ -1,0 +1,1 @@
+"""ESC telemetry: CAN in -> decoders -> per-ESC state, read by the publishers."""

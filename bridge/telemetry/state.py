@@ -1,0 +1,478 @@
+"""Per-ESC telemetry state: decoded frames in, one consistent snapshot per motor out.
+
+Pure bookkeeping, no I/O: the CAN reader feeds it decoded frames and codec errors with their
+receive times, the publishers (MAVLink, Zenoh, the monitor) take :class:`EscSnapshot` copies.
+One lock guards it, held only for a few attribute updates, so neither side waits on the other.
+
+ESCs are keyed by motor: motor *n* (1-based, the mixer's output order) is the ESC whose node ID
+(CKESC) or ESC ID (FT) is the *n*-th entry of ``[escs] ids``.
+
+Failure flags follow MAVLink's ESC_FAILURE_FLAGS; where they come from is the table
+:data:`CKESC_STATUS_FAILURES` plus the configured limits of :class:`TelemetryLimits`
+(README, "ESC telemetry").
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from bridge.escs import AnyFrame, ckesc, ft
+
+# MAVLink ESC_FAILURE_FLAGS bits.
+FAILURE_NONE = 0
+FAILURE_OVER_CURRENT = 1
+FAILURE_OVER_VOLTAGE = 2
+FAILURE_OVER_TEMPERATURE = 4
+FAILURE_OVER_RPM = 8
+FAILURE_INCONSISTENT_CMD = 16
+FAILURE_MOTOR_STUCK = 32
+FAILURE_GENERIC = 64
+
+_S = ckesc.Msg1Status
+# CKESC MSG1 status bits -> ESC_FAILURE_FLAGS. MAVLink has no under-voltage, comms or self-test
+# bit: those are GENERIC (the ESC's raw status word is published beside the flags).
+CKESC_STATUS_FAILURES: tuple[tuple[int, int], ...] = (
+    (_S.OVER_CURRENT, FAILURE_OVER_CURRENT),
+    (_S.OVER_VOLTAGE, FAILURE_OVER_VOLTAGE),
+    (_S.OVER_TEMPERATURE, FAILURE_OVER_TEMPERATURE),
+    (_S.UNDER_VOLTAGE, FAILURE_GENERIC),
+    (_S.COMMS_FAULT, FAILURE_GENERIC),
+    (_S.SELF_TEST_ERRORS, FAILURE_GENERIC),
+)
+
+_NS_PER_HOUR = 3_600_000_000_000
+ERROR_BURST_WINDOW_NS = 1_000_000_000  # CRC/format errors are counted per second for the flag
+
+
+def ckesc_failure_flags(status: int) -> int:
+    """ESC_FAILURE_FLAGS for a CKESC MSG1 status word."""
+    flags = 0
+    for bits, failure in CKESC_STATUS_FAILURES:
+        if status & bits:
+            flags |= failure
+    return flags
+
+
+@dataclass(frozen=True)
+class TelemetryLimits:
+    """Limits beyond which the bridge itself raises failure flags (FT reports no faults)."""
+
+    max_temp_c: float | None = 100.0
+    """Any reported temperature above this: OVER_TEMPERATURE."""
+    max_current_a: float | None = None
+    """|current| above this: OVER_CURRENT."""
+    max_rpm: int | None = None
+    """|rpm| above this: OVER_RPM."""
+    error_burst: int = 5
+    """This many CRC/format errors within a second: GENERIC, for that second."""
+
+
+@dataclass(frozen=True, slots=True)
+class EscSnapshot:
+    """One ESC's state at one moment. ``None``: not (yet) reported by this ESC."""
+
+    motor: int
+    """1-based motor (mixer output) number."""
+    node_id: int
+    """CKESC node ID or FT ESC ID."""
+    online: bool
+    """A frame arrived within the telemetry timeout."""
+    age_ms: float | None
+    """Time since the last frame from this ESC; None if none ever came."""
+    rpm: int | None
+    """Mechanical rpm, negative when turning in reverse (FT erpm / pole pairs)."""
+    voltage_v: float | None
+    current_a: float | None
+    """Supply (battery) current."""
+    motor_current_a: float | None
+    """Phase current (FT only)."""
+    throttle: float | None
+    """The ESC's reported output: CKESC throttle / 2000, FT duty (-1..1)."""
+    mos_temp_c: float | None
+    capacitor_temp_c: float | None
+    motor_temp_c: float | None
+    mcu_temp_c: float | None
+    status: int | None
+    """CKESC MSG1 status word as received (FT has none)."""
+    failure_flags: int
+    """MAVLink ESC_FAILURE_FLAGS."""
+    frames: int
+    """Telemetry frames received."""
+    errors: int
+    """CRC and format errors in frames from this ESC."""
+    consumed_mah: float
+    """Charge drawn since start, integrated from current_a."""
+    counters: dict[str, int] = field(default_factory=dict)
+    """Slow information the ESC reported (CKESC MSG_EXP8..10): power_on_count, start_count,
+    stop_count, total_run_time_s, run_time_s, self_test_fault, fault_code_2."""
+    command: float | None = None
+    """The last command seen on the bus for this ESC (the bridge's own, read back)."""
+    command_unit: str = ""
+    """What ``command`` is: throttle (CKESC 0..2000), current_a, current_fraction, duty, erpm,
+    brake_current_a, brake_fraction, position_deg, id_current_a."""
+
+    @property
+    def esc_temp_c(self) -> float | None:
+        """The ESC's own temperature: its MOSFETs, else the hottest other sensor on the ESC."""
+        if self.mos_temp_c is not None:
+            return self.mos_temp_c
+        known = [t for t in (self.capacitor_temp_c, self.mcu_temp_c) if t is not None]
+        return max(known) if known else None
+
+    def telemetry_dict(self) -> dict[str, Any]:
+        """The fast data, as published on ``esc/<n>/telemetry`` (README: Zenoh schema)."""
+        return {
+            "motor": self.motor,
+            "node_id": self.node_id,
+            "online": self.online,
+            "age_ms": None if self.age_ms is None else round(self.age_ms, 1),
+            "rpm": self.rpm,
+            "voltage_v": self.voltage_v,
+            "current_a": self.current_a,
+            "motor_current_a": self.motor_current_a,
+            "throttle": self.throttle,
+            "temperature_c": {
+                "mos": self.mos_temp_c,
+                "capacitor": self.capacitor_temp_c,
+                "motor": self.motor_temp_c,
+                "mcu": self.mcu_temp_c,
+            },
+            "status": self.status,
+            "failure_flags": self.failure_flags,
+            "consumed_mah": round(self.consumed_mah, 3),
+            "command": self.command,
+            "command_unit": self.command_unit,
+        }
+
+    def info_dict(self) -> dict[str, Any]:
+        """The slow data, as published on ``esc/<n>/info``."""
+        return {
+            "motor": self.motor,
+            "node_id": self.node_id,
+            "online": self.online,
+            "frames": self.frames,
+            "errors": self.errors,
+            "failure_flags": self.failure_flags,
+            "counters": dict(self.counters),
+        }
+
+
+class _Esc:
+    """The mutable state of one ESC; only :class:`EscTable` touches it, under its lock."""
+
+    __slots__ = (
+        "capacitor_temp_c",
+        "command",
+        "command_unit",
+        "consumed_mah",
+        "counters",
+        "current_a",
+        "current_ns",
+        "error_times",
+        "errors",
+        "frames",
+        "last_ns",
+        "mcu_temp_c",
+        "mos_temp_c",
+        "motor",
+        "motor_current_a",
+        "motor_temp_c",
+        "node_id",
+        "pole_pairs",
+        "reported_faults",
+        "rpm",
+        "status",
+        "throttle",
+        "voltage_v",
+    )
+
+    def __init__(self, motor: int, node_id: int, pole_pairs: int) -> None:
+        self.motor = motor
+        self.node_id = node_id
+        self.pole_pairs = pole_pairs
+        self.last_ns: int | None = None
+        self.rpm: int | None = None
+        self.voltage_v: float | None = None
+        self.current_a: float | None = None
+        self.current_ns: int | None = None
+        self.motor_current_a: float | None = None
+        self.throttle: float | None = None
+        self.mos_temp_c: float | None = None
+        self.capacitor_temp_c: float | None = None
+        self.motor_temp_c: float | None = None
+        self.mcu_temp_c: float | None = None
+        self.status: int | None = None
+        self.reported_faults = 0  # GENERIC from MSG_EXP9/10 fault codes
+        self.frames = 0
+        self.errors = 0
+        self.error_times: deque[int] = deque()
+        self.consumed_mah = 0.0
+        self.counters: dict[str, int] = {}
+        self.command: float | None = None
+        self.command_unit = ""
+
+    def set_current(self, current_a: float, now_ns: int, max_gap_ns: int) -> None:
+        # Integrate with the previous sample's current over the gap; a gap longer than the
+        # timeout (the ESC was silent) adds nothing rather than a guess.
+        if self.current_a is not None and self.current_ns is not None:
+            gap_ns = now_ns - self.current_ns
+            if 0 < gap_ns <= max_gap_ns:
+                self.consumed_mah += self.current_a * 1000.0 * gap_ns / _NS_PER_HOUR
+        self.current_a = current_a
+        self.current_ns = now_ns
+
+
+class EscTable:
+    """The state of every configured ESC, fed by the CAN reader, read by the publishers."""
+
+    def __init__(
+        self,
+        node_ids: Sequence[int],
+        *,
+        pole_pairs: Sequence[int] | int = 7,
+        channels: Sequence[int] | None = None,
+        timeout_ms: int = 500,
+        limits: TelemetryLimits | None = None,
+    ) -> None:
+        """``node_ids[i]`` is the CKESC node / FT ESC ID of motor i + 1; ``pole_pairs`` is one
+        value for every motor or one per motor (used to turn FT erpm into rpm); ``channels[i]``
+        is the CKESC throttle channel of motor i + 1 (default i + 1), to read commands back.
+
+        Raises:
+            ValueError: ``pole_pairs`` has the wrong length or a value below 1.
+        """
+        pairs = [pole_pairs] * len(node_ids) if isinstance(pole_pairs, int) else list(pole_pairs)
+        if len(pairs) != len(node_ids) or any(p < 1 for p in pairs):
+            raise ValueError(
+                f"pole_pairs: expected one value >= 1 per ESC ({len(node_ids)}), got {pole_pairs}"
+            )
+        self._lock = threading.Lock()
+        self._timeout_ns = timeout_ms * 1_000_000
+        self._limits = limits or TelemetryLimits()
+        self._escs = [_Esc(i + 1, node, pairs[i]) for i, node in enumerate(node_ids)]
+        self._by_node = {esc.node_id: esc for esc in self._escs}
+        channels = channels or range(1, len(node_ids) + 1)
+        self._by_channel = {c: esc for c, esc in zip(channels, self._escs, strict=True)}
+        self.node_set = frozenset(self._by_node)
+        """Our ESCs' IDs (for the CKESC decoder's foreign-node filter)."""
+        self.unknown_frames = 0
+        """Telemetry from an ID that is not one of ours."""
+        self.unattributed_errors = 0
+        """Malformed frames whose ID names none of our ESCs."""
+
+    @property
+    def node_ids(self) -> tuple[int, ...]:
+        return tuple(esc.node_id for esc in self._escs)
+
+    def __len__(self) -> int:
+        return len(self._escs)
+
+    def remap(self, node_ids: Sequence[int]) -> None:
+        """Assign node IDs to motors anew (CKESC GET_ESC_ID learning); state is kept per motor.
+
+        Raises:
+            ValueError: not one distinct ID per motor.
+        """
+        if len(node_ids) != len(self._escs) or len(set(node_ids)) != len(node_ids):
+            raise ValueError(f"expected {len(self._escs)} distinct node IDs, got {node_ids}")
+        with self._lock:
+            for esc, node in zip(self._escs, node_ids, strict=True):
+                esc.node_id = node
+            self._by_node = {esc.node_id: esc for esc in self._escs}
+            self.node_set = frozenset(self._by_node)
+
+    def ingest(self, frame: AnyFrame, now_ns: int) -> bool:
+        """Take one decoded frame received at ``now_ns`` (monotonic). False if it is not
+        telemetry from one of our ESCs (commands, service traffic, other nodes)."""
+        message = frame.message
+        if isinstance(message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b):
+            self._note_throttles(message)
+            return False
+        if isinstance(frame, ft.FtFrame):
+            if not isinstance(message, ft.RealtimeData0 | ft.RealtimeData1 | ft.RealtimeData2):
+                self._note_ft_command(frame.node_id, message)
+                return False
+        elif not isinstance(message, _CKESC_TELEMETRY):
+            return False
+        with self._lock:
+            esc = self._by_node.get(frame.node_id)
+            if esc is None:
+                self.unknown_frames += 1
+                return False
+            self._apply(esc, message, now_ns)
+            esc.frames += 1
+            esc.last_ns = now_ns
+        return True
+
+    def _note_throttles(
+        self, message: ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
+    ) -> None:
+        if isinstance(message, ckesc.RawCommand12b):
+            first, scale = 4 * message.group - 3, 1
+        else:
+            # RawCommand_10b carries 0..1000, which the ESC doubles.
+            first, scale = 1, 2 if isinstance(message, ckesc.RawCommand10b) else 1
+        with self._lock:
+            for offset, throttle in enumerate(message.throttles):
+                esc = self._by_channel.get(first + offset)
+                if esc is not None:
+                    esc.command, esc.command_unit = float(throttle * scale), "throttle"
+
+    def _note_ft_command(self, esc_id: int, message: object) -> None:
+        unit_and_field = _FT_COMMAND_FIELDS.get(type(message))
+        if unit_and_field is None:
+            return
+        unit, name = unit_and_field
+        with self._lock:
+            esc = self._by_node.get(esc_id)
+            if esc is not None:
+                esc.command, esc.command_unit = float(getattr(message, name)), unit
+
+    def count_error(self, node_id: int | None, now_ns: int) -> None:
+        """Count a malformed frame (bad CRC, DLC, tail byte) from ``node_id`` (None: unknown)."""
+        with self._lock:
+            esc = self._by_node.get(node_id) if node_id is not None else None
+            if esc is None:
+                self.unattributed_errors += 1
+                return
+            esc.errors += 1
+            esc.error_times.append(now_ns)
+            cutoff = now_ns - ERROR_BURST_WINDOW_NS
+            while esc.error_times and esc.error_times[0] < cutoff:
+                esc.error_times.popleft()
+
+    def snapshot(self, now_ns: int) -> tuple[EscSnapshot, ...]:
+        """Every ESC's state as of ``now_ns``, in motor order."""
+        with self._lock:
+            return tuple(self._snapshot(esc, now_ns) for esc in self._escs)
+
+    # -- under the lock ---------------------------------------------------------------------
+
+    def _apply(self, esc: _Esc, message: object, now_ns: int) -> None:
+        if isinstance(message, ckesc.Msg1):
+            esc.rpm = message.speed_rpm
+            esc.throttle = message.throttle / ckesc.THROTTLE_MAX
+            esc.status = int(message.status)
+        elif isinstance(message, ckesc.Msg2):
+            esc.voltage_v = message.voltage_v
+            esc.set_current(message.current_a, now_ns, self._timeout_ns)
+            esc.mos_temp_c = message.mos_temp_c
+        elif isinstance(message, ckesc.Msg3 | ckesc.MsgExp11):
+            esc.mos_temp_c = message.mos_temp_c
+            esc.capacitor_temp_c = message.capacitor_temp_c
+            esc.motor_temp_c = message.motor_temp_c
+            esc.mcu_temp_c = message.mcu_temp_c
+        elif isinstance(message, ckesc.MsgExp1):
+            esc.rpm = message.speed_rpm
+            esc.voltage_v = message.voltage_v
+            esc.set_current(message.current_a, now_ns, self._timeout_ns)
+        elif isinstance(message, ckesc.MsgExp8):
+            esc.counters["power_on_count"] = message.power_on_count
+            esc.counters["start_count"] = message.start_count
+            esc.counters["stop_count"] = message.stop_count
+        elif isinstance(message, ckesc.MsgExp9):
+            esc.counters["total_run_time_s"] = message.total_run_time_s
+            esc.counters["self_test_fault"] = int(message.self_test_fault)
+        elif isinstance(message, ckesc.MsgExp10):
+            esc.counters["run_time_s"] = message.run_time_s
+            esc.counters["fault_code_2"] = message.fault_code_2
+        elif isinstance(message, ft.RealtimeData0):
+            esc.motor_current_a = message.motor_current_a
+            esc.set_current(message.battery_current_a, now_ns, self._timeout_ns)
+        elif isinstance(message, ft.RealtimeData1):
+            # int(x / p) truncates toward zero, so reverse rpm stays as large as forward rpm.
+            esc.rpm = int(message.erpm / esc.pole_pairs)
+            esc.throttle = message.duty
+        elif isinstance(message, ft.RealtimeData2):
+            esc.mos_temp_c = message.mosfet_temp_c
+            esc.motor_temp_c = message.motor_temp_c
+            esc.voltage_v = message.battery_voltage_v
+        # MSG_EXP2..6 (vendor debug), 7 (settings) and 12 (temperature records) count as
+        # frames received and keep the ESC online; their contents are not state.
+        if esc.counters.get("self_test_fault") or esc.counters.get("fault_code_2"):
+            esc.reported_faults = FAILURE_GENERIC
+        else:
+            esc.reported_faults = 0
+
+    def _failure_flags(self, esc: _Esc, now_ns: int) -> int:
+        limits = self._limits
+        flags = esc.reported_faults
+        if esc.status is not None:
+            flags |= ckesc_failure_flags(esc.status)
+        if limits.max_temp_c is not None:
+            temps = (esc.mos_temp_c, esc.capacitor_temp_c, esc.motor_temp_c, esc.mcu_temp_c)
+            if any(t is not None and t > limits.max_temp_c for t in temps):
+                flags |= FAILURE_OVER_TEMPERATURE
+        if (
+            limits.max_current_a is not None
+            and esc.current_a is not None
+            and abs(esc.current_a) > limits.max_current_a
+        ):
+            flags |= FAILURE_OVER_CURRENT
+        if limits.max_rpm is not None and esc.rpm is not None and abs(esc.rpm) > limits.max_rpm:
+            flags |= FAILURE_OVER_RPM
+        cutoff = now_ns - ERROR_BURST_WINDOW_NS
+        if sum(1 for t in esc.error_times if t >= cutoff) >= limits.error_burst:
+            flags |= FAILURE_GENERIC
+        return flags
+
+    def _snapshot(self, esc: _Esc, now_ns: int) -> EscSnapshot:
+        age_ns = None if esc.last_ns is None else now_ns - esc.last_ns
+        return EscSnapshot(
+            motor=esc.motor,
+            node_id=esc.node_id,
+            online=age_ns is not None and age_ns <= self._timeout_ns,
+            age_ms=None if age_ns is None else age_ns / 1e6,
+            rpm=esc.rpm,
+            voltage_v=esc.voltage_v,
+            current_a=esc.current_a,
+            motor_current_a=esc.motor_current_a,
+            throttle=esc.throttle,
+            mos_temp_c=esc.mos_temp_c,
+            capacitor_temp_c=esc.capacitor_temp_c,
+            motor_temp_c=esc.motor_temp_c,
+            mcu_temp_c=esc.mcu_temp_c,
+            status=esc.status,
+            failure_flags=self._failure_flags(esc, now_ns),
+            frames=esc.frames,
+            errors=esc.errors,
+            consumed_mah=esc.consumed_mah,
+            counters=dict(esc.counters),
+            command=esc.command,
+            command_unit=esc.command_unit,
+        )
+
+
+_CKESC_TELEMETRY = (
+    ckesc.Msg1,
+    ckesc.Msg2,
+    ckesc.Msg3,
+    ckesc.MsgExp1,
+    ckesc.MsgExp2,
+    ckesc.MsgExp3,
+    ckesc.MsgExp4,
+    ckesc.MsgExp5,
+    ckesc.MsgExp6,
+    ckesc.MsgExp7,
+    ckesc.MsgExp8,
+    ckesc.MsgExp9,
+    ckesc.MsgExp10,
+    ckesc.MsgExp11,
+    ckesc.MsgExp12,
+)
+
+# FT command records -> (command_unit, the record's value field).
+_FT_COMMAND_FIELDS: dict[type, tuple[str, str]] = {
+    ft.SetCurrent: ("current_a", "current_a"),
+    ft.SetCurrentBrake: ("brake_current_a", "current_a"),
+    ft.SetDuty: ("duty", "duty"),
+    ft.SetCurrentPercent: ("current_fraction", "fraction"),
+    ft.SetCurrentBrakePercent: ("brake_fraction", "fraction"),
+    ft.SetErpm: ("erpm", "erpm"),
+    ft.SetPosition: ("position_deg", "angle_deg"),
+    ft.SetIdCurrent: ("id_current_a", "current_a"),
+}
