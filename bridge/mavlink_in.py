@@ -1,34 +1,58 @@
-"""The MAVLink edge: the autopilot's motor outputs and arming state in, the bridge's HEARTBEAT out.
+"""The MAVLink edge: the autopilot's motor outputs and arming state in; the bridge's HEARTBEAT,
+STATUSTEXT and ESC telemetry out, to the autopilot and to any extra outputs (a GCS).
 
-The only module besides the dialect that imports pymavlink. A :class:`MavlinkLink` opens one
-connection to the autopilot and runs two named daemon threads:
+The only module besides the dialect and :mod:`bridge.mavlink_out` that touches pymavlink. A
+:class:`MavlinkLink` opens one connection to the autopilot plus one per ``[mavlink] outputs``
+entry, and runs named daemon threads:
 
-* the reader drains the connection, decodes the configured output message into a
-  :data:`INPUT_VECTOR_LEN`-vector (``ch1..ch32, roll, pitch, yaw, thrust``, the order of
-  ``bridge.mixer.INPUT_NAMES``; NaN = absent) and hands it, with the arming state from the
-  autopilot's HEARTBEAT, to an :class:`InputSink`. When a TCP or serial link drops it reopens
-  it with jittered, capped exponential backoff.
-* the heartbeat thread sends the bridge's own HEARTBEAT, asks the autopilot for the output
-  stream (MAV_CMD_SET_MESSAGE_INTERVAL) every second while none arrives, and notices when the
-  stream stops.
+* one reader per connection. On the autopilot's connection it decodes the configured output
+  message into a :data:`INPUT_VECTOR_LEN`-vector (``ch1..ch32, roll, pitch, yaw, thrust``, the
+  order of ``bridge.mixer.INPUT_NAMES``; NaN = absent) and hands it, with the arming state from
+  the autopilot's HEARTBEAT, to an :class:`InputSink`. On every connection it passes
+  COMMAND_LONGs addressed to the bridge to the command handler and answers with COMMAND_ACK.
+  When a TCP or serial connection drops it reopens it with jittered, capped exponential backoff.
+* one writer per extra output: :meth:`MavlinkLink.send` only queues frames for an output, so a
+  congested or dead output (a wedged UART, a stalled TCP client) delays nobody but itself.
+* the heartbeat thread sends the bridge's own HEARTBEAT everywhere, asks the autopilot for the
+  output stream (MAV_CMD_SET_MESSAGE_INTERVAL, autopilot link only) every second while none
+  arrives, and notices when the stream stops.
 
-Only the configured autopilot (system and component ID) is obeyed. Everything that arrives is
-counted in :class:`LinkStats`, and nothing that arrives can stop the reader: junk, bad CRCs and
-refused signatures are counted and dropped.
+Motor outputs and arming are obeyed only from the configured autopilot (system and component
+ID) on the autopilot's connection; an output can never move a motor. The bridge is no router:
+nothing is forwarded between connections. Everything that arrives is counted (:class:`LinkStats`
+for the autopilot's connection, :class:`OutputStats` per output), and nothing that arrives can
+stop a reader: junk, bad CRCs and refused signatures are counted and dropped. With a signing key
+every connection signs what it sends and refuses unsigned input, outputs included.
 
-Encoding and decoding use pymavlink's MAVLink 2 dialect module directly rather than the one
-``mavutil`` picks, because ``mavutil`` chooses MAVLink 1 or 2 from the ``MAVLINK20``
-environment variable and switches it process-wide when it first sees a MAVLink 2 frame. The
-MAVLink 2 parser reads MAVLink 1 frames too. ``mavutil`` is used only to open the transport.
+Commands (COMMAND_LONG): addressed to the bridge means ``target_system`` is the vehicle's system
+ID or 0 (broadcast) and ``target_component`` is ``component_id`` or 0, from any sender on any
+connection. The registered handler (:meth:`MavlinkLink.set_command_handler`) returns a
+MAV_RESULT, or ``None`` for "not mine". The COMMAND_ACK goes back to the sender on the
+connection the command came in on, only: the autopilot would otherwise forward a GCS's answers
+back to it a second time. A command nobody claims is answered MAV_RESULT_UNSUPPORTED only when it
+named the bridge exactly (system and component); broadcasts nobody claims get no answer.
 
-pymavlink is not thread-safe: a send updates the sequence number and the signing timestamp,
-which the parser also updates, and the UDP server connection's list of peers is changed by
-reads while writes walk it. One lock therefore covers every send and every read-and-parse;
-callbacks run after the lock is released.
+Every frame is packed once: one sequence number and one signature serve all connections, so a
+recording (``tlog``) holds exactly the bytes on the wire. A COMMAND_ACK or a stream request goes
+to one connection only, which the others see as a skipped sequence number.
+
+Encoding and decoding use the project's MAVLink 2 dialect module, ardupilotmega plus ESC_INFO
+and ESC_STATUS (:func:`bridge.mavlink.load_dialect`), directly rather than the one ``mavutil``
+picks, because ``mavutil`` chooses MAVLink 1 or 2 from the ``MAVLINK20`` environment
+variable and switches it process-wide when it first sees a MAVLink 2 frame. The MAVLink 2 parser
+reads MAVLink 1 frames too. ``mavutil`` is used only to open the transports.
+
+pymavlink is not thread-safe: packing updates the sequence number and the signing timestamp,
+which the parsers update too (replay protection), and a UDP server connection's list of peers is
+changed by reads while writes walk it. So one codec lock covers every pack and every parse (CPU
+only, microseconds), each connection has a lock around its reads and writes, and a send lock keeps
+frames in sequence order on the wire. No thread holds two of them except a sender (send lock,
+then one of the others); callbacks run with none held.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import logging
@@ -36,28 +60,32 @@ import math
 import random
 import re
 import select
+import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Any, Final, Literal, Protocol, cast
+from types import ModuleType, TracebackType
+from typing import Any, BinaryIO, Final, Literal, Protocol, cast
 
 from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError, LinkError
+from bridge.mavlink import load_dialect
 from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, INPUT_NAMES
 
 __all__ = [
     "ACCEPTED_URL_FORMS",
     "DEFAULT_BAUD",
     "INPUT_VECTOR_LEN",
+    "CommandHandler",
     "Endpoint",
     "InputSink",
     "LinkStats",
     "MavlinkLink",
+    "OutputStats",
     "Transport",
     "parse_url",
 ]
@@ -65,6 +93,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 Transport = Literal["udpin", "udpout", "tcp", "tcpin", "serial"]
+
+CommandHandler = Callable[[Any], int | None]
+"""Takes a COMMAND_LONG addressed to the bridge; returns a MAV_RESULT, or None: not mine."""
 
 INPUT_VECTOR_LEN: Final = len(INPUT_NAMES)
 """36: ``ch1..ch32``, then ``roll, pitch, yaw, thrust`` (the order of ``INPUT_NAMES``)."""
@@ -85,23 +116,31 @@ _NETWORK_URL: Final = re.compile(r"(udpin|udpout|tcp|tcpin):([^:\s]+):([0-9]{1,5
 _SERIAL_URL: Final = re.compile(r"(?:serial:)?(/\S*?)(?::([0-9]+))?")
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
-_POLL_S: Final = 0.1  # the reader wakes at least this often to notice close()
+_POLL_S: Final = 0.1  # readers and writers wake at least this often to notice close()
 _REQUEST_PERIOD_NS: Final = 1_000_000_000  # ask for the stream this often while none arrives
 _RATE_WINDOW_NS: Final = 1_000_000_000  # the arrival rate is measured over about this long
 _RATE_LOG_CHANGE: Final = 0.2  # log the arrival rate again when it moves by this fraction
 _BACKOFF_FIRST_S: Final = 0.1  # a restarting TCP peer is often listening again within this
 _BACKOFF_CAP_S: Final = 5.0
 _JOIN_TIMEOUT_S: Final = 2.0
-# A write that blocks holds the link's lock and would stall the reader; a UART without flow
-# control never blocks this long, so hitting it means the port is wedged.
+# A write that blocks holds the connection's lock and would stall its reader; a UART without
+# flow control never blocks this long, so hitting it means the port is wedged.
 _SERIAL_WRITE_TIMEOUT_S: Final = 0.1
+# Frames waiting for an output's writer. At the bridge's own rates (a HEARTBEAT, ~30 telemetry
+# messages a second) this is seconds of backlog: a full queue means the output is stuck, and
+# the oldest frames, the least useful ones, are dropped first.
+_OUTPUT_QUEUE_FRAMES: Final = 256
 _STATUSTEXT_LEN: Final = 50  # STATUSTEXT.text is char[50]
 _SIGNATURE_LEN: Final = 6  # the truncated SHA-256 at the end of a signed MAVLink 2 frame
 # How pymavlink's parser (robust mode) reports a message refused by signing: a BAD_DATA whose
 # reason is this text. Those are counted as rejected_unsigned, not as bad_data.
 _SIGNATURE_REJECTED: Final = "Invalid signature"
-
-_ARMED_FLAG: Final = dialect.MAV_MODE_FLAG_SAFETY_ARMED
+# MAVLink signing timestamps count 10 µs units since 2015-01-01T00:00:00Z.
+_SIGNING_EPOCH_S: Final = 1_420_070_400
+_SIGNING_TICKS_PER_S: Final = 100_000
+# A .tlog record: the time it was logged, in µs since the Unix epoch, big-endian, then the frame.
+_TLOG_STAMP: Final = struct.Struct(">Q")
+_SERIAL_WRITE_FAILED: Final = -1  # what pymavlink's serial write returns after an exception
 
 
 class InputSink(Protocol):
@@ -118,10 +157,11 @@ class InputSink(Protocol):
 
 @dataclass
 class LinkStats:
-    """Counters of one link, updated in place by its threads; read them field by field."""
+    """Counters of the autopilot's connection (and the link-wide ones), updated in place by
+    the link's threads; read them field by field."""
 
     messages: int = 0
-    """Well-formed MAVLink messages received, from any sender."""
+    """Well-formed MAVLink messages received on the autopilot's connection, from any sender."""
     outputs: int = 0
     """Configured output messages from the autopilot handed to the sink (each
     SERVO_OUTPUT_RAW port counts)."""
@@ -133,7 +173,7 @@ class LinkStats:
     bad_data: int = 0
     """Stretches of bytes that were no valid MAVLink frame (junk, bad CRC, truncation)."""
     reconnects: int = 0
-    """Times the link was reopened after it dropped."""
+    """Times the connection was reopened after it dropped."""
     output_rate_hz: float = 0.0
     """Output messages per second over the last ~1 s; 0 once none arrived for ~1 s."""
     last_heartbeat_ns: int = 0
@@ -141,9 +181,41 @@ class LinkStats:
     last_output_ns: int = 0
     """``time.monotonic_ns()`` of the last output message handed to the sink; 0 = none yet."""
     send_failures: int = 0
-    """Messages not sent because the link was down (being reopened, or closed)."""
+    """Messages not sent to the autopilot because its connection was down (being reopened,
+    or closed) or the write failed."""
     handler_errors: int = 0
-    """Messages dropped because handling them raised (a fault in the sink); logged."""
+    """Messages dropped because handling them raised (a fault in the sink or the command
+    handler); logged."""
+    commands: int = 0
+    """COMMAND_LONGs addressed to the bridge, from any connection."""
+    tlog_errors: int = 0
+    """Frames that could not be appended to the recording (disk full, file closed)."""
+
+
+@dataclass
+class OutputStats:
+    """Counters of one extra output, updated in place by its threads."""
+
+    url: str
+    """As configured."""
+    messages: int = 0
+    """Well-formed MAVLink messages received on it (only commands are acted on)."""
+    rejected_unsigned: int = 0
+    """With a signing key: messages refused as unsigned, badly signed or replayed."""
+    bad_data: int = 0
+    """Stretches of bytes that were no valid MAVLink frame."""
+    reconnects: int = 0
+    """Times it was reopened after it dropped (or opened late, after failing at start)."""
+    sent: int = 0
+    """Frames handed to its transport. pymavlink drops silently what a UDP or listening TCP
+    output cannot deliver (no peer yet, unreachable), and those count here too."""
+    send_failures: int = 0
+    """Frames not sent: the output was down, its queue overflowed, or the write failed."""
+    handler_errors: int = 0
+    """Messages dropped because handling them raised; logged."""
+
+
+_Counters = LinkStats | OutputStats
 
 
 @dataclass(frozen=True)
@@ -164,41 +236,41 @@ class Endpoint:
         return self.kind in ("tcp", "tcpin", "serial")
 
 
-def parse_url(url: str) -> Endpoint:
+def parse_url(url: str, key: str = "url") -> Endpoint:
     """Check a connection string and split it into what pymavlink opens.
 
     Only the forms in :data:`ACCEPTED_URL_FORMS` are accepted: pymavlink would also take a file
     name (and replay it as a log, or run it if it looks like a program), which must never
-    happen by accident on a vehicle.
+    happen by accident on a vehicle. ``key`` is the ``[mavlink]`` key the URL came from, for
+    the message (``url`` or ``outputs``).
 
     Raises:
-        ConfigError: naming the URL and the accepted forms.
+        ConfigError: naming the key, the URL and the accepted forms.
     """
+    where = f"[mavlink] {key} {url!r}"
     network = _NETWORK_URL.fullmatch(url)
     if network is not None:
         kind, host, port = network.groups()
         if not 1 <= int(port) <= 65535:
             raise ConfigError(
-                f"[mavlink] url {url!r}: port {port} is not 1..65535; "
-                f"expected one of {ACCEPTED_URL_FORMS}"
+                f"{where}: port {port} is not 1..65535; expected one of {ACCEPTED_URL_FORMS}"
             )
         return Endpoint(url, cast(Transport, kind), f"{host}:{int(port)}")
     serial = _SERIAL_URL.fullmatch(url)
     if serial is not None:
         device, baud = serial.groups()
         if baud is not None and int(baud) == 0:
-            raise ConfigError(
-                f"[mavlink] url {url!r}: baud rate 0; expected one of {ACCEPTED_URL_FORMS}"
-            )
+            raise ConfigError(f"{where}: baud rate 0; expected one of {ACCEPTED_URL_FORMS}")
         return Endpoint(url, "serial", device, int(baud) if baud else DEFAULT_BAUD)
     raise ConfigError(
-        f"[mavlink] url {url!r} is not a connection string esc-bridge accepts; "
+        f"{where} is not a connection string esc-bridge accepts; "
         f"expected one of {ACCEPTED_URL_FORMS}"
     )
 
 
-class _Codec(dialect.MAVLink):  # type: ignore[misc]  # pymavlink is untyped
-    """pymavlink's MAVLink 2 codec, verifying a signature before trusting its timestamp.
+@functools.cache
+def _codec_class(dialect: ModuleType) -> Any:
+    """The dialect's MAVLink 2 codec, verifying a signature before trusting its timestamp.
 
     pymavlink records a signed packet's timestamp as the stream's newest *before* it checks the
     signature, so a single forged packet with a far-future timestamp would make every genuine
@@ -206,12 +278,18 @@ class _Codec(dialect.MAVLink):  # type: ignore[misc]  # pymavlink is untyped
     signature first keeps forged packets from touching the replay state.
     """
 
-    def check_signature(self, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
-        key: bytes = self.signing.secret_key
-        digest = hashlib.sha256(key + bytes(msgbuf[:-_SIGNATURE_LEN])).digest()
-        if not hmac.compare_digest(digest[:_SIGNATURE_LEN], bytes(msgbuf[-_SIGNATURE_LEN:])):
-            return False
-        return bool(super().check_signature(msgbuf, src_system, src_component))
+    class Codec(dialect.MAVLink):  # type: ignore[misc, name-defined]  # pymavlink is untyped
+        counters: _Counters | None = None
+        """Where a parser counts refused signatures (set per connection)."""
+
+        def check_signature(self, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+            key: bytes = self.signing.secret_key
+            digest = hashlib.sha256(key + bytes(msgbuf[:-_SIGNATURE_LEN])).digest()
+            if not hmac.compare_digest(digest[:_SIGNATURE_LEN], bytes(msgbuf[-_SIGNATURE_LEN:])):
+                return False
+            return bool(super().check_signature(msgbuf, src_system, src_component))
+
+    return Codec
 
 
 def _finite_or_nan(value: float) -> float:
@@ -233,30 +311,71 @@ def _wait_readable(fd: int, timeout_s: float) -> bool:
     return bool(poller.poll(timeout_s * 1000))
 
 
+class _Connection:
+    """One transport the link reads and writes: the autopilot's, or an extra output."""
+
+    def __init__(self, endpoint: Endpoint, counters: _Counters, is_autopilot: bool) -> None:
+        self.endpoint = endpoint
+        self.counters = counters
+        self.is_autopilot = is_autopilot
+        self.lock = threading.Lock()
+        """Guards ``conn``: its reads, writes, closing and replacement."""
+        self.conn: Any = None
+        self.parser: Any = None
+        """Owned by the reader thread; used under the link's codec lock (shared signing)."""
+        # Outputs only: frames for the writer thread; oldest dropped first when full.
+        self.queue: deque[bytes] = deque()
+        self.queued = threading.Condition()
+
+    @property
+    def url(self) -> str:
+        return self.endpoint.url
+
+
 class MavlinkLink:
-    """One connection to the autopilot: motor outputs and arming in, HEARTBEAT out.
+    """The autopilot's connection plus extra outputs: motor outputs and arming in, HEARTBEAT,
+    STATUSTEXT, telemetry and command answers out.
 
     Use :meth:`start` once, then :meth:`close` (or a ``with`` block, which closes on exit).
-    ``stats`` is updated live. Build messages with ``link.mav.<name>_encode(...)`` and send them
-    with :meth:`send`; never call ``mav.<name>_send``, which would bypass the lock.
+    ``stats`` and ``output_stats`` are updated live. Build messages with
+    ``link.mav.<name>_encode(...)`` and send them with :meth:`send`; never call
+    ``mav.<name>_send``, which would bypass the locks.
+
+    ``tlog``: when given, every MAVLink message received on any connection and every frame
+    sent is appended to it in .tlog form (8-byte big-endian µs since the Unix epoch, then the
+    frame as on the wire). The caller opens and closes the file; :meth:`close` flushes it.
     """
 
-    def __init__(self, config: MavlinkConfig, sink: InputSink) -> None:
+    def __init__(
+        self, config: MavlinkConfig, sink: InputSink, tlog: BinaryIO | None = None
+    ) -> None:
+        """``tlog``: a binary file to record into (see the class docstring), or None.
+
+        Raises:
+            DialectError: the project's MAVLink dialect could not be generated or loaded.
+        """
         self._config = config
         self._sink = sink
+        self._tlog = tlog
+        self._tlog_lock = threading.Lock()
         self._autopilot = (config.autopilot_system_id, config.autopilot_component_id)
         self.stats = LinkStats()
-        self._lock = threading.Lock()
+        self.output_stats = tuple(OutputStats(url) for url in config.outputs)
+        """One per ``[mavlink] outputs`` entry, in that order."""
+        self._send_lock = threading.Lock()
+        self._codec_lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._connections: list[_Connection] = []
+        self._uplink: _Connection | None = None  # the autopilot's connection, once started
         self._started = False
         self._closed = False
-        self._conn: Any = None
+        self._command_handler: CommandHandler | None = None
+        self._dialect = load_dialect()
         # Our system ID is the vehicle's: the bridge is one more component of it.
-        self._mav: Any = _Codec(
+        self._mav: Any = _codec_class(self._dialect)(
             None, srcSystem=config.autopilot_system_id, srcComponent=config.component_id
         )
-        self._parser: Any = None
         decoders: dict[str, dict[str, Callable[[Any, int], list[float] | None]]] = {
             "servo_output_raw": {"SERVO_OUTPUT_RAW": self._from_servo_output_raw},
             "actuator_output_status": {"ACTUATOR_OUTPUT_STATUS": self._from_actuator_output_status},
@@ -268,12 +387,13 @@ class MavlinkLink:
         }
         self._decoders = decoders[config.source]
         self._output_name = next(iter(self._decoders))
-        self._output_msg_id: int = getattr(dialect, f"MAVLINK_MSG_ID_{self._output_name}")
+        self._output_msg_id: int = getattr(self._dialect, f"MAVLINK_MSG_ID_{self._output_name}")
+        self._armed_flag: int = self._dialect.MAV_MODE_FLAG_SAFETY_ARMED
         # SERVO_OUTPUT_RAW state: channels 1..32 as last received, and per port whether the
         # other port arrived since this one last did (see _from_servo_output_raw).
         self._servo = [_NAN] * CHANNEL_COUNT
         self._other_port_seen = [True, True]
-        # Arrival-rate window, owned by the reader thread.
+        # Arrival-rate window, owned by the autopilot's reader thread.
         self._window_start_ns = 0
         self._window_count = 0
         self._logged_rate_hz = 0.0
@@ -287,28 +407,56 @@ class MavlinkLink:
         """The pymavlink MAVLink 2 object, for building messages (``*_encode``) to :meth:`send`."""
         return self._mav
 
+    @property
+    def dialect(self) -> ModuleType:
+        """The dialect module the link speaks (its constants: ``MAV_RESULT_*``, message IDs)."""
+        return self._dialect
+
+    def set_command_handler(self, handler: CommandHandler | None) -> None:
+        """Pass COMMAND_LONGs addressed to the bridge to ``handler`` (replacing the previous one;
+        ``None`` removes it).
+
+        The handler runs on a reader thread: keep it short and never wait there for a reply. It
+        returns a MAV_RESULT, which the link sends back as COMMAND_ACK, or ``None`` when the
+        command is not its (see the module docstring for who gets an answer). If it raises, the
+        error is counted and logged and a command that named the bridge exactly is answered
+        MAV_RESULT_FAILED.
+        """
+        self._command_handler = handler
+
     def start(self) -> None:
-        """Open the connection and start the reader and heartbeat threads.
+        """Check every URL, open the autopilot's connection and the outputs, start the threads.
+
+        An output that cannot be opened does not stop the start: it is logged and retried in
+        the background with backoff (a GCS that is not up yet must not keep a vehicle from
+        flying).
 
         Raises:
-            ConfigError: the URL is malformed (the message names it and the accepted forms).
-            LinkError: the connection cannot be opened (no such device, port in use, refused).
+            ConfigError: a URL is malformed (the message names its key, the URL and the accepted
+                forms), or an output repeats the autopilot's URL or another output.
+            LinkError: the autopilot's connection cannot be opened (no such device, port in
+                use, refused).
             RuntimeError: the link was started before, or closed.
         """
         if self._started or self._closed:
             raise RuntimeError("a MavlinkLink can be started once, and not after close()")
         endpoint = parse_url(self._config.url)
-        conn = self._open(endpoint)
-        self._install(conn)
+        outputs = [parse_url(url, "outputs") for url in self._config.outputs]
+        seen = {(endpoint.kind, endpoint.address): f"[mavlink] url {endpoint.url!r}"}
+        for output in outputs:
+            where = (output.kind, output.address)
+            if where in seen:
+                raise ConfigError(
+                    f"[mavlink] outputs {output.url!r} is the same connection as {seen[where]}; "
+                    "list each connection once"
+                )
+            seen[where] = repr(output.url)
         if self._config.signing_key is not None:
-            # setup_signing acts on conn.mav, which _install made our codec; its signing state
-            # is shared with every parser, and outlives reconnects.
-            conn.setup_signing(
-                bytes.fromhex(self._config.signing_key),
-                sign_outgoing=True,
-                allow_unsigned_callback=self._refuse_unsigned,
-                link_id=0,
-            )
+            self._setup_signing(bytes.fromhex(self._config.signing_key))
+        uplink = _Connection(endpoint, self.stats, is_autopilot=True)
+        self._install(uplink, self._open(endpoint))
+        self._uplink = uplink
+        self._connections = [uplink]
         self._started = True
         log.info(
             "MAVLink %s open: obeying %s from %d/%d, signing %s",
@@ -317,30 +465,54 @@ class MavlinkLink:
             *self._autopilot,
             "required" if self._config.signing_key else "off",
         )
+        for output, counters in zip(outputs, self.output_stats, strict=True):
+            connection = _Connection(output, counters, is_autopilot=False)
+            try:
+                self._install(connection, self._open(output))
+                log.info("MAVLink output %s open", output.url)
+            except LinkError as exc:
+                log.warning("%s; retrying in the background", exc)
+            self._connections.append(connection)
         self._threads = [
             threading.Thread(
-                target=self._run_reader, args=(endpoint,), name=f"mavlink-reader {endpoint.url}"
+                target=self._run_reader, args=(uplink,), name=f"mavlink-reader {endpoint.url}"
             ),
             threading.Thread(target=self._run_heartbeat, name=f"mavlink-heartbeat {endpoint.url}"),
         ]
+        for connection in self._connections[1:]:
+            self._threads += [
+                threading.Thread(
+                    target=self._run_reader,
+                    args=(connection,),
+                    name=f"mavlink-reader {connection.url}",
+                ),
+                threading.Thread(
+                    target=self._run_writer,
+                    args=(connection,),
+                    name=f"mavlink-writer {connection.url}",
+                ),
+            ]
         for thread in self._threads:
             thread.daemon = True  # a stuck link must not keep the process alive
             thread.start()
 
     def send(self, msg: Any) -> None:
-        """Send a pymavlink message object, from any thread.
+        """Send a pymavlink message object to the autopilot and every output, from any thread.
 
-        Never raises for link trouble: while the link is down the message is dropped and
-        counted in ``stats.send_failures`` (MAVLink is lossy anyway).
+        Never raises for link trouble: a connection that is down (or closed) or whose write
+        fails drops the frame and counts it in its ``send_failures`` (MAVLink is lossy anyway).
+        Outputs are written by their own threads, so a stuck output never delays this call.
         """
-        with self._lock:
-            if self._conn is None:
+        with self._send_lock:
+            if not self._connections:  # not started
                 self.stats.send_failures += 1
                 return
-            self._mav.send(msg)
+            frame = self._pack(msg)
+            for connection in self._connections:
+                self._deliver(connection, frame)
 
     def statustext(self, severity: int, text: str) -> None:
-        """Send a STATUSTEXT to the autopilot (and so to the ground station).
+        """Send a STATUSTEXT to the autopilot (and so to the ground station) and the outputs.
 
         ``severity`` is a MAV_SEVERITY (0 = emergency .. 7 = debug). ``text`` is cut to 50
         characters, the field's size; characters outside ASCII become ``?`` since receivers
@@ -349,25 +521,36 @@ class MavlinkLink:
         Raises:
             ValueError: ``severity`` is not 0..7.
         """
-        if not 0 <= severity <= dialect.MAV_SEVERITY_DEBUG:
+        if not 0 <= severity <= self._dialect.MAV_SEVERITY_DEBUG:
             raise ValueError(f"severity {severity} is not a MAV_SEVERITY (0..7)")
         raw = text[:_STATUSTEXT_LEN].encode("ascii", errors="replace")
         self.send(self._mav.statustext_encode(severity, raw))
 
     def close(self) -> None:
-        """Stop the threads and close the connection; a second call does nothing."""
+        """Stop the threads, close the connections and flush the recording; a second call does
+        nothing."""
         if self._closed:
             return
         self._closed = True
         self._stop.set()
+        for connection in self._connections:
+            with connection.queued:
+                connection.queued.notify_all()
         for thread in self._threads:
             thread.join(_JOIN_TIMEOUT_S)
             if thread.is_alive():
                 # Only a blocking TCP connect to a silent host can hold a thread this long; it
                 # is a daemon thread and ends with the process.
                 log.warning("%s did not stop within %.0f s", thread.name, _JOIN_TIMEOUT_S)
-        with self._lock:
-            self._drop_connection()
+        for connection in self._connections:
+            with connection.lock:
+                self._drop_connection(connection)
+        if self._tlog is not None:
+            with self._tlog_lock:
+                try:
+                    self._tlog.flush()
+                except (OSError, ValueError) as exc:  # ValueError: the file was closed first
+                    log.warning("could not flush the MAVLink recording: %s", exc)
         if self._started:
             log.info("MAVLink %s closed", self._config.url)
 
@@ -382,7 +565,117 @@ class MavlinkLink:
     ) -> None:
         self.close()
 
+    # -- sending ---------------------------------------------------------------------------
+
+    def _pack(self, msg: Any) -> bytes:
+        """The frame for ``msg`` with the next sequence number (and signature), recorded.
+        Called with the send lock held, so frames reach each connection in sequence order."""
+        with self._codec_lock:
+            frame = bytes(msg.pack(self._mav))
+            self._mav.seq = (self._mav.seq + 1) % 256
+        self._record(frame)
+        return frame
+
+    def _deliver(self, connection: _Connection, frame: bytes) -> None:
+        """Write ``frame`` to the autopilot now, or queue it for an output's writer."""
+        counters = connection.counters
+        if not connection.is_autopilot:
+            if self._stop.is_set():
+                counters.send_failures += 1
+                return
+            with connection.queued:
+                if len(connection.queue) >= _OUTPUT_QUEUE_FRAMES:
+                    connection.queue.popleft()
+                    counters.send_failures += 1
+                    _log_sparsely(
+                        logging.WARNING,
+                        counters.send_failures,
+                        "MAVLink output %s is not keeping up; dropped its oldest frame",
+                        connection.url,
+                    )
+                connection.queue.append(frame)
+                connection.queued.notify()
+            return
+        with connection.lock:
+            self._write(connection, frame)
+
+    def _write(self, connection: _Connection, frame: bytes) -> None:
+        """Write one frame; called with the connection's lock held."""
+        counters = connection.counters
+        if connection.conn is None:
+            counters.send_failures += 1
+            return
+        try:
+            written = connection.conn.write(frame)
+        # pymavlink's transports swallow most socket errors; whatever still escapes is the
+        # connection's trouble, never the sender's.
+        except Exception:  # noqa: BLE001
+            counters.send_failures += 1
+            _log_sparsely(
+                logging.WARNING,
+                counters.send_failures,
+                "MAVLink %s: write failed",
+                connection.url,
+                exc_info=True,
+            )
+            return
+        if written == _SERIAL_WRITE_FAILED:
+            counters.send_failures += 1
+            _log_sparsely(
+                logging.WARNING, counters.send_failures, "MAVLink %s: write failed", connection.url
+            )
+        elif isinstance(counters, OutputStats):
+            counters.sent += 1
+
+    def _send_on(self, connection: _Connection, msg: Any) -> None:
+        """Send ``msg`` on one connection only (a COMMAND_ACK, a request to the autopilot)."""
+        with self._send_lock:
+            self._deliver(connection, self._pack(msg))
+
+    def _run_writer(self, connection: _Connection) -> None:
+        """An output's writer: drains its queue, so its troubles stay its own."""
+        while True:
+            with connection.queued:
+                while not connection.queue and not self._stop.is_set():
+                    connection.queued.wait(_POLL_S)
+                if self._stop.is_set():
+                    return
+                frames = list(connection.queue)
+                connection.queue.clear()
+            with connection.lock:
+                for frame in frames:
+                    self._write(connection, frame)
+
+    def _record(self, frame: bytes) -> None:
+        """Append one frame to the recording, if any, stamped now."""
+        if self._tlog is None:
+            return
+        with self._tlog_lock:
+            stamp_us = time.time_ns() // 1000
+            try:
+                self._tlog.write(_TLOG_STAMP.pack(stamp_us) + frame)
+            except (OSError, ValueError) as exc:  # ValueError: the file was closed
+                self.stats.tlog_errors += 1
+                _log_sparsely(
+                    logging.WARNING,
+                    self.stats.tlog_errors,
+                    "could not append to the MAVLink recording: %s",
+                    exc,
+                )
+
     # -- connection ------------------------------------------------------------------------
+
+    def _setup_signing(self, key: bytes) -> None:
+        """Sign what we send and refuse unsigned input. Every parser shares this state, which
+        outlives reconnects (so replay protection does too)."""
+        signing = self._mav.signing
+        signing.secret_key = key
+        signing.sign_outgoing = True
+        signing.allow_unsigned_callback = self._refuse_unsigned
+        signing.link_id = 0
+        # Start at the wall clock: a receiver refuses timestamps older than the newest it saw.
+        now_ticks = time.time_ns() * _SIGNING_TICKS_PER_S // 1_000_000_000
+        signing.timestamp = max(0, now_ticks - _SIGNING_EPOCH_S * _SIGNING_TICKS_PER_S)
 
     def _open(self, endpoint: Endpoint) -> Any:
         """Open the transport. Raises LinkError."""
@@ -408,36 +701,39 @@ class MavlinkLink:
         except (OSError, ValueError) as exc:
             raise LinkError(f"cannot open MAVLink {endpoint.url!r}: {exc}") from exc
 
-    def _install(self, conn: Any) -> bool:
-        """Make ``conn`` the live connection, with a fresh parser (no half frame carried over);
-        False if the link was closed meanwhile (``conn`` is then closed)."""
-        parser = _Codec(None, srcSystem=self._mav.srcSystem, srcComponent=self._mav.srcComponent)
+    def _install(self, connection: _Connection, conn: Any) -> bool:
+        """Make ``conn`` the live transport of ``connection``, with a fresh parser (no half
+        frame carried over); False if the link was closed meanwhile (``conn`` is then closed)."""
+        parser = _codec_class(self._dialect)(
+            None, srcSystem=self._mav.srcSystem, srcComponent=self._mav.srcComponent
+        )
         parser.robust_parsing = True  # malformed input becomes BAD_DATA instead of raising
         parser.signing = self._mav.signing
-        with self._lock:
+        parser.counters = connection.counters
+        with connection.lock:
             if self._closed:  # close() gave up waiting for a reconnect that has now succeeded
                 conn.close()
                 return False
-            conn.mav = self._mav
-            self._mav.file = conn
-            self._conn = conn
-            self._parser = parser
-        self._servo = [_NAN] * CHANNEL_COUNT
-        self._other_port_seen = [True, True]
+            connection.conn = conn
+            connection.parser = parser
+        if connection.is_autopilot:
+            self._servo = [_NAN] * CHANNEL_COUNT
+            self._other_port_seen = [True, True]
         return True
 
-    def _drop_connection(self) -> None:
-        """Close the live connection, if any. Called with the lock held."""
-        if self._conn is not None:
-            self._conn.close()
-        self._conn = None
-        self._mav.file = None
+    @staticmethod
+    def _drop_connection(connection: _Connection) -> None:
+        """Close the live transport, if any. Called with the connection's lock held."""
+        if connection.conn is not None:
+            connection.conn.close()
+        connection.conn = None
 
-    def _reopen(self, endpoint: Endpoint, reason: str) -> None:
-        """Close the dropped connection and open it again, backing off, until it opens or
-        the link is closed."""
-        with self._lock:
-            self._drop_connection()
+    def _reopen(self, connection: _Connection, reason: str) -> None:
+        """Close the dropped transport and open it again, backing off, until it opens or the
+        link is closed."""
+        endpoint = connection.endpoint
+        with connection.lock:
+            self._drop_connection(connection)
         log.warning("MAVLink %s lost (%s); reconnecting", endpoint.url, reason)
         lost_at = time.monotonic()
         delay = _BACKOFF_FIRST_S
@@ -451,39 +747,43 @@ class MavlinkLink:
                 log.debug("reconnect attempt %d failed: %s", attempts, exc)
                 delay = min(delay * 2, _BACKOFF_CAP_S)
                 continue
-            if not self._install(conn):
+            if not self._install(connection, conn):
                 return
-            self.stats.reconnects += 1
+            connection.counters.reconnects += 1
             log.info(
                 "MAVLink %s reconnected after %.1f s, at attempt %d (%d reconnects in all)",
                 endpoint.url,
                 time.monotonic() - lost_at,
                 attempts,
-                self.stats.reconnects,
+                connection.counters.reconnects,
             )
             return
 
-    # -- reader thread ---------------------------------------------------------------------
+    # -- reader threads --------------------------------------------------------------------
 
-    def _run_reader(self, endpoint: Endpoint) -> None:
+    def _run_reader(self, connection: _Connection) -> None:
+        if connection.conn is None:  # an output that could not be opened at start
+            self._reopen(connection, "could not be opened")
         while not self._stop.is_set():
             try:
-                lost = self._read_once(endpoint.is_stream)
+                lost = self._read_once(connection)
             except Exception as exc:
                 # pymavlink's robust parser turns malformed input into BAD_DATA, so this is a
                 # fault in the transport or parser; a fresh connection and parser clear it.
-                log.exception("MAVLink reader failed; reopening the link")
+                log.exception("MAVLink reader of %s failed; reopening it", connection.url)
                 lost = f"reader error: {exc!r}"
             if lost is not None:
-                self._reopen(endpoint, lost)
+                self._reopen(connection, lost)
 
-    def _read_once(self, is_stream: bool) -> str | None:
+    def _read_once(self, connection: _Connection) -> str | None:
         """Wait for one read's worth of input and handle it; the reason if the link dropped."""
-        conn = self._conn
+        conn = connection.conn
+        if conn is None:  # closing
+            return None
         fd = conn.fd
         if not _wait_readable(fd, _POLL_S):
             return None
-        with self._lock:
+        with connection.lock:
             try:
                 data = conn.recv(_READ_SIZE)
             except OSError as exc:
@@ -492,45 +792,55 @@ class MavlinkLink:
             if not data:
                 # Readable yet empty is the end of a stream, unless a tcpin listener just
                 # accepted its client (its descriptor changes) or a datagram was empty.
-                if is_stream and conn.fd == fd:
+                if connection.endpoint.is_stream and conn.fd == fd:
                     return "closed by the other end"
                 return None
-            batch = self._parser.parse_buffer(data) or []
+        with self._codec_lock:
+            batch = connection.parser.parse_buffer(data) or []
+        counters = connection.counters
         for msg in batch:
             try:
-                self._handle(msg, now)
+                self._handle(connection, msg, now)
             # A fault in the sink must not stop the reader: counted, and logged sparsely below.
             except Exception:  # noqa: BLE001
-                self.stats.handler_errors += 1
+                counters.handler_errors += 1
                 _log_sparsely(
                     logging.ERROR,
-                    self.stats.handler_errors,
+                    counters.handler_errors,
                     "dropped %s: handling it raised",
                     msg.get_type(),
                     exc_info=True,
                 )
         return None
 
-    def _refuse_unsigned(self, _mav: Any, msg_id: int) -> bool:
+    def _refuse_unsigned(self, parser: Any, msg_id: int) -> bool:
         """pymavlink's allow_unsigned_callback: called for each unsigned or badly signed
         message once a key is set; refusing makes the parser report it as BAD_DATA."""
-        self.stats.rejected_unsigned += 1
+        counters: _Counters = getattr(parser, "counters", None) or self.stats
+        counters.rejected_unsigned += 1
         _log_sparsely(
             logging.WARNING,
-            self.stats.rejected_unsigned,
+            counters.rejected_unsigned,
             "refused an unsigned or badly signed MAVLink message (id %d)",
             msg_id,
         )
         return False
 
-    def _handle(self, msg: Any, now: int) -> None:
+    def _handle(self, connection: _Connection, msg: Any, now: int) -> None:
         kind: str = msg.get_type()
+        counters = connection.counters
         if kind == "BAD_DATA":
             if msg.reason != _SIGNATURE_REJECTED:  # those were counted by _refuse_unsigned
-                self.stats.bad_data += 1
-                _log_sparsely(logging.INFO, self.stats.bad_data, "dropped bad MAVLink data")
+                counters.bad_data += 1
+                _log_sparsely(logging.INFO, counters.bad_data, "dropped bad MAVLink data")
             return
-        self.stats.messages += 1
+        counters.messages += 1
+        self._record(bytes(msg.get_msgbuf()))
+        if kind == "COMMAND_LONG":
+            self._on_command(connection, msg)
+            return
+        if not connection.is_autopilot:
+            return  # an output can send commands, never motor outputs or arming
         decode = self._decoders.get(kind)
         if decode is None and kind != "HEARTBEAT":
             return
@@ -545,12 +855,45 @@ class MavlinkLink:
             return
         if decode is None:
             self.stats.last_heartbeat_ns = now
-            self._sink.on_armed(bool(msg.base_mode & _ARMED_FLAG), now)
+            self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
             return
         values = decode(msg, now)
         if values is not None:
             self._note_output(now)
             self._sink.on_actuators(values, now)
+
+    def _on_command(self, connection: _Connection, msg: Any) -> None:
+        """A COMMAND_LONG: pass it to the handler if it is addressed to us, and answer."""
+        ours = (self._mav.srcSystem, self._config.component_id)
+        target = (msg.target_system, msg.target_component)
+        if target[0] not in (0, ours[0]) or target[1] not in (0, ours[1]):
+            return
+        self.stats.commands += 1
+        named_us = target == ours
+        handler = self._command_handler
+        result: int | None = None
+        if handler is not None:
+            try:
+                result = handler(msg)
+            # The handler's fault must not stop the reader; the sender learns it failed.
+            except Exception:  # noqa: BLE001
+                connection.counters.handler_errors += 1
+                _log_sparsely(
+                    logging.ERROR,
+                    connection.counters.handler_errors,
+                    "MAVLink command %d: the handler raised",
+                    msg.command,
+                    exc_info=True,
+                )
+                result = self._dialect.MAV_RESULT_FAILED if named_us else None
+        if result is None:
+            if not named_us:
+                return  # a broadcast nobody here handles is not ours to refuse
+            result = self._dialect.MAV_RESULT_UNSUPPORTED
+        ack = self._mav.command_ack_encode(
+            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
+        self._send_on(connection, ack)
 
     def _note_output(self, now: int) -> None:
         """Count an output and update the arrival-rate estimate."""
@@ -605,7 +948,7 @@ class MavlinkLink:
         return values + [_NAN] * (INPUT_VECTOR_LEN - len(values))
 
     def _from_hil_actuator_controls(self, msg: Any, now: int) -> list[float] | None:
-        self._sink.on_armed(bool(msg.mode & _ARMED_FLAG), now)
+        self._sink.on_armed(bool(msg.mode & self._armed_flag), now)
         values = [_finite_or_nan(value) for value in msg.controls[:_HIL_CHANNELS]]
         return values + [_NAN] * (INPUT_VECTOR_LEN - len(values))
 
@@ -635,11 +978,11 @@ class MavlinkLink:
             if now >= next_beat:
                 self.send(
                     self._mav.heartbeat_encode(
-                        dialect.MAV_TYPE_ONBOARD_CONTROLLER,
-                        dialect.MAV_AUTOPILOT_INVALID,
+                        self._dialect.MAV_TYPE_ONBOARD_CONTROLLER,
+                        self._dialect.MAV_AUTOPILOT_INVALID,
                         0,
                         0,
-                        dialect.MAV_STATE_ACTIVE,
+                        self._dialect.MAV_STATE_ACTIVE,
                     )
                 )
                 next_beat = max(next_beat + beat_period_ns, now)
@@ -675,10 +1018,14 @@ class MavlinkLink:
             rate_hz,
         )
         self._requesting = True
-        self.send(
+        if self._uplink is None:
+            return
+        # To the autopilot only: a GCS on an output has no use for it.
+        self._send_on(
+            self._uplink,
             self._mav.command_long_encode(
                 *self._autopilot,
-                dialect.MAV_CMD_SET_MESSAGE_INTERVAL,
+                self._dialect.MAV_CMD_SET_MESSAGE_INTERVAL,
                 0,
                 float(self._output_msg_id),
                 float(round(1e6 / rate_hz)),  # interval in µs
@@ -687,5 +1034,5 @@ class MavlinkLink:
                 0,
                 0,
                 0,  # param7 0: the flight stack's default target (us, the requester)
-            )
+            ),
         )

@@ -7,6 +7,7 @@ on the ``MAVLINK20`` environment variable that ``mavutil`` reads.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import random
@@ -15,6 +16,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -621,3 +623,308 @@ def test_close_is_idempotent_and_stops_the_threads(udp_address: str) -> None:
     link.close()
     link.send(link.mav.heartbeat_encode(0, 0, 0, 0, 0))  # dropped and counted, no error
     assert link.stats.send_failures == 1
+
+
+# -- extra outputs, commands and recording ------------------------------------------------------
+
+USER_1 = mavlink2.MAV_CMD_USER_1
+USER_2 = mavlink2.MAV_CMD_USER_2
+USER_3 = mavlink2.MAV_CMD_USER_3
+ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
+
+
+def command(peer: Peer, cmd: int, target: tuple[int, int], param1: float = 0) -> None:
+    peer.send(peer.mav.command_long_encode(*target, cmd, 0, param1, 0, 0, 0, 0, 0, 0))
+
+
+def receive_until(peer: Peer, predicate: Callable[[Any], bool]) -> list[Any]:
+    """Everything ``peer`` receives up to and including the first message matching."""
+    got: list[Any] = []
+    deadline = time.monotonic() + TIMEOUT_S
+    while time.monotonic() < deadline:
+        for _, msg in peer.receive(0.02):
+            got.append(msg)
+            if predicate(msg):
+                return got
+    raise AssertionError(f"nothing matching within {TIMEOUT_S} s; got {len(got)} messages")
+
+
+def receive_acks(peer: Peer, n: int) -> list[Any]:
+    """The first ``n`` COMMAND_ACKs ``peer`` receives, and any that follow within 0.2 s."""
+    acks: list[Any] = []
+    deadline = time.monotonic() + TIMEOUT_S
+    while len(acks) < n:
+        assert time.monotonic() < deadline, f"{len(acks)} of {n} COMMAND_ACKs"
+        acks += [m for _, m in peer.receive(0.02) if m.get_type() == "COMMAND_ACK"]
+    return acks + [m for _, m in peer.receive(0.2) if m.get_type() == "COMMAND_ACK"]
+
+
+def test_outputs_get_everything_sent_but_can_never_move_a_motor(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str
+) -> None:
+    gcs_address = f"127.0.0.1:{free_port()}"
+    gcs = make_peer(f"udpin:{gcs_address}", system=255, component=190)
+    link, sink = make_link(
+        f"udpin:{udp_address}", outputs=(f"udpout:{gcs_address}",), heartbeat_hz=10.0
+    )
+    autopilot = make_peer(f"udpout:{udp_address}")
+    autopilot.send(heartbeat(autopilot.mav, armed=False))
+    assert sink.wait_armed(1) == [False]
+    beat = autopilot.wait_for("HEARTBEAT")  # the autopilot link works as before
+    assert (beat.get_srcSystem(), beat.get_srcComponent()) == (1, 191)
+    to_gcs = gcs.receive(0.3)  # from the start: a HEARTBEAT and the first stream request
+    beat = next(m for _, m in to_gcs if m.get_type() == "HEARTBEAT")
+    assert (beat.get_srcSystem(), beat.get_srcComponent()) == (1, 191)
+    assert "COMMAND_LONG" not in [m.get_type() for _, m in to_gcs]  # requests: autopilot only
+
+    link.statustext(mavlink2.MAV_SEVERITY_INFO, "to everyone")
+    assert gcs.wait_for("STATUSTEXT").text == "to everyone"
+    assert autopilot.wait_for("STATUSTEXT").text == "to everyone"
+
+    # Motor outputs and arming on an output are ignored, even when they claim to be 1/1.
+    gcs.send(servo(gcs.mav, 0, [1800]))
+    fake = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    gcs.write(servo(fake, 0, [1900]).pack(fake))
+    gcs.write(heartbeat(fake, armed=True).pack(fake))
+    wait_until(lambda: link.output_stats[0].messages == 3, "the output's three messages")
+    autopilot.send(servo(autopilot.mav, 0, [1100]))
+    assert_vector(sink.wait_vectors(1)[0], {"ch1": 1100.0})
+    assert len(sink.vectors()) == 1
+    assert sink.armed() == [False]
+    assert link.stats.messages == 2  # the autopilot's HEARTBEAT and output only
+    assert link.output_stats[0].url == f"udpout:{gcs_address}"
+    assert link.output_stats[0].sent > 0
+
+
+def test_a_failing_output_never_stops_the_autopilot_link_and_reconnects(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str
+) -> None:
+    dead = f"127.0.0.1:{free_port(socket.SOCK_STREAM)}"  # nothing listens there, yet
+    gcs_address = f"127.0.0.1:{free_port()}"
+    gcs = make_peer(f"udpin:{gcs_address}")
+    link, sink = make_link(
+        f"udpin:{udp_address}",
+        outputs=(f"tcp:{dead}", f"udpout:{gcs_address}"),
+        heartbeat_hz=10.0,
+    )
+    autopilot = make_peer(f"udpout:{udp_address}")
+
+    autopilot.send(servo(autopilot.mav, 0, [1100]))
+    assert_vector(sink.wait_vectors(1)[0], {"ch1": 1100.0})
+    autopilot.wait_for("HEARTBEAT")
+    gcs.wait_for("HEARTBEAT")  # the other output is unaffected
+    wait_until(lambda: link.output_stats[0].send_failures >= 2, "frames counted as not sent")
+    assert link.stats.send_failures == 0
+    assert link.output_stats[1].send_failures == 0
+
+    listener = make_peer(f"tcpin:{dead}")  # the GCS comes up: the output connects
+    deadline = time.monotonic() + 2 * TIMEOUT_S  # the backoff may have reached 1.6 s
+    while not any(m.get_type() == "HEARTBEAT" for _, m in listener.receive(0.05)):
+        assert time.monotonic() < deadline, "the output never connected"
+    assert link.output_stats[0].reconnects == 1
+    assert link.stats.reconnects == 0
+
+
+@pytest.mark.parametrize(
+    ("outputs", "problem"),
+    [
+        (("udp:127.0.0.1:14550",), "'udp:127.0.0.1:14550' is not a connection string"),
+        (("udpout:127.0.0.1:14550", "flight.tlog"), "'flight.tlog' is not a connection string"),
+        (("tcpin:0.0.0.0:99999",), "port 99999 is not 1..65535"),
+        (("udpout:127.0.0.1:14550", "udpout:127.0.0.1:14550"), "the same connection as"),
+    ],
+)
+def test_bad_outputs_are_config_errors_before_anything_opens(
+    outputs: tuple[str, ...], problem: str
+) -> None:
+    address = ("127.0.0.1", free_port(socket.SOCK_STREAM))
+    link = MavlinkLink(
+        MavlinkConfig(url=f"tcpin:{address[0]}:{address[1]}", outputs=outputs), Sink()
+    )
+    with pytest.raises(ConfigError) as raised:
+        link.start()
+    message = str(raised.value)
+    assert message.startswith("[mavlink] outputs ")
+    assert problem in message
+    if "same connection" not in problem:
+        assert ACCEPTED_URL_FORMS in message
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(address)  # the autopilot's listener was never opened
+    assert not any("mavlink" in t.name and address[0] in t.name for t in threading.enumerate())
+
+
+def test_an_output_repeating_the_autopilot_url_is_refused(udp_address: str) -> None:
+    url = f"udpin:{udp_address}"
+    with pytest.raises(ConfigError, match=r"same connection as \[mavlink\] url"):
+        MavlinkLink(MavlinkConfig(url=url, outputs=(url,)), Sink()).start()
+
+
+def test_commands_addressed_to_the_bridge_reach_the_handler_and_are_acked(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str
+) -> None:
+    link, _ = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
+    gcs = make_peer(f"udpout:{udp_address}", system=255, component=190)
+    ours, to_all, to_vehicle = (1, 191), (0, 0), (1, 0)
+
+    command(gcs, USER_1, ours)  # no handler yet
+    (first,) = receive_acks(gcs, 1)
+    assert (first.command, first.result) == (USER_1, mavlink2.MAV_RESULT_UNSUPPORTED)
+
+    calls: list[tuple[int, int, int, float]] = []
+
+    def handler(msg: Any) -> int | None:
+        calls.append((msg.command, msg.target_system, msg.target_component, msg.param1))
+        if msg.command == USER_3:
+            raise RuntimeError("handler fault")
+        return ACCEPTED if msg.command == USER_1 else None
+
+    link.set_command_handler(handler)
+    command(gcs, USER_1, ours)
+    command(gcs, USER_1, to_vehicle)
+    command(gcs, USER_1, to_all)
+    command(gcs, USER_2, ours)  # nobody claims it, and it named us: UNSUPPORTED
+    command(gcs, USER_2, to_vehicle)  # nobody claims it, a broadcast: no answer
+    command(gcs, USER_1, (1, 1))  # the autopilot's
+    command(gcs, USER_1, (2, 191))  # another vehicle's
+    command(gcs, USER_3, ours)  # the handler raises: FAILED
+    command(gcs, USER_1, ours, param1=99)  # the last one
+    acks = receive_acks(gcs, 6)
+
+    assert [(a.command, a.result) for a in acks] == [
+        (USER_1, ACCEPTED),
+        (USER_1, ACCEPTED),
+        (USER_1, ACCEPTED),
+        (USER_2, mavlink2.MAV_RESULT_UNSUPPORTED),
+        (USER_3, mavlink2.MAV_RESULT_FAILED),
+        (USER_1, ACCEPTED),
+    ]
+    for ack in acks:
+        assert (ack.target_system, ack.target_component) == (255, 190)
+        assert (ack.get_srcSystem(), ack.get_srcComponent()) == ours
+    assert calls == [
+        (USER_1, 1, 191, 0.0),
+        (USER_1, 1, 0, 0.0),
+        (USER_1, 0, 0, 0.0),
+        (USER_2, 1, 191, 0.0),
+        (USER_2, 1, 0, 0.0),
+        (USER_3, 1, 191, 0.0),
+        (USER_1, 1, 191, 99.0),
+    ]
+    assert link.stats.commands == 8  # the first one, unhandled, too
+    assert link.stats.handler_errors == 1
+
+
+def test_a_command_from_an_output_is_answered_there_only(
+    make_link: MakeLink, make_peer: MakePeer
+) -> None:
+    autopilot_address = f"127.0.0.1:{free_port()}"
+    gcs_address = f"127.0.0.1:{free_port()}"
+    autopilot = make_peer(f"udpin:{autopilot_address}")
+    gcs = make_peer(f"udpin:{gcs_address}", system=255, component=190)
+    link, _ = make_link(
+        f"udpout:{autopilot_address}", outputs=(f"udpout:{gcs_address}",), stream_rate_hz=0.0
+    )
+    link.set_command_handler(lambda msg: ACCEPTED)
+    gcs.wait_for("HEARTBEAT")  # now the GCS knows where to answer
+
+    command(gcs, USER_1, (1, 191))
+    ack = receive_until(gcs, lambda m: m.get_type() == "COMMAND_ACK")[-1]
+    assert (ack.result, ack.target_system, ack.target_component) == (ACCEPTED, 255, 190)
+    link.statustext(mavlink2.MAV_SEVERITY_INFO, "after the ack")
+    before = receive_until(autopilot, lambda m: m.get_type() == "STATUSTEXT")
+    assert not [m for m in before if m.get_type() == "COMMAND_ACK"]
+
+
+def test_tlog_records_everything_received_and_sent_once(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str, tmp_path: Path
+) -> None:
+    gcs_address = f"127.0.0.1:{free_port()}"
+    gcs = make_peer(f"udpin:{gcs_address}", system=255, component=190)
+    path = tmp_path / "bridge.tlog"
+    with path.open("wb") as tlog:
+        sink = Sink()
+        link = MavlinkLink(
+            MavlinkConfig(
+                url=f"udpin:{udp_address}", outputs=(f"udpout:{gcs_address}",), stream_rate_hz=0
+            ),
+            sink,
+            tlog=tlog,
+        )
+        with link:
+            link.start()
+            link.set_command_handler(lambda msg: ACCEPTED)
+            autopilot = make_peer(f"udpout:{udp_address}")
+            autopilot.send(heartbeat(autopilot.mav, armed=True))
+            autopilot.send(servo(autopilot.mav, 0, [1234]))
+            sink.wait_vectors(1)
+            gcs.wait_for("HEARTBEAT")
+            command(gcs, USER_1, (1, 191))
+            receive_until(gcs, lambda m: m.get_type() == "COMMAND_ACK")
+            start_s = time.time()
+
+            def chatter(n: int) -> None:  # several senders at once: records stay whole
+                for i in range(50):
+                    link.statustext(mavlink2.MAV_SEVERITY_DEBUG, f"thread {n} line {i}")
+
+            threads = [threading.Thread(target=chatter, args=(n,)) for n in range(4)]
+            for thread in threads:
+                thread.start()
+            for pwm in range(1300, 1500):  # meanwhile the reader records what arrives
+                autopilot.send(servo(autopilot.mav, 0, [pwm]))
+            for thread in threads:
+                thread.join()
+            sink.wait_vectors(201)
+            end_s = time.time()
+
+    recording: Any = mavutil.mavlink_connection(str(path))
+    got: list[Any] = []
+    while (msg := recording.recv_msg()) is not None:
+        got.append(msg)
+    recording.close()
+    kinds = [(m.get_type(), m.get_srcSystem(), m.get_srcComponent()) for m in got]
+    assert ("BAD_DATA", 0, 0) not in kinds
+    for expected in [
+        ("HEARTBEAT", 1, 1),  # received from the autopilot
+        ("SERVO_OUTPUT_RAW", 1, 1),
+        ("COMMAND_LONG", 255, 190),  # received on the output
+        ("COMMAND_ACK", 1, 191),  # sent
+        ("HEARTBEAT", 1, 191),
+    ]:
+        assert expected in kinds
+    recorded_pwm = [m.servo1_raw for m in got if m.get_type() == "SERVO_OUTPUT_RAW"]
+    assert recorded_pwm == [1234, *range(1300, 1500)]
+    texts = [m.text for m in got if m.get_type() == "STATUSTEXT"]
+    assert sorted(texts) == sorted(f"thread {n} line {i}" for n in range(4) for i in range(50))
+    sent_seq = [m.get_seq() for m in got if (m.get_srcSystem(), m.get_srcComponent()) == (1, 191)]
+    assert len(sent_seq) > 200
+    assert all((b - a) % 256 == 1 for a, b in itertools.pairwise(sent_seq))
+    stamps = [m._timestamp for m in got]
+    assert stamps == sorted(stamps)
+    texts_at = [m._timestamp for m in got if m.get_type() == "STATUSTEXT"]
+    assert start_s - 0.01 <= texts_at[0] and texts_at[-1] <= end_s + 0.01
+    assert link.stats.tlog_errors == 0
+
+
+def test_with_a_signing_key_outputs_sign_and_refuse_unsigned_commands(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str
+) -> None:
+    gcs_address = f"127.0.0.1:{free_port()}"
+    signed = make_peer(f"udpin:{gcs_address}", system=255, component=190, key=KEY)
+    link, _ = make_link(
+        f"udpin:{udp_address}",
+        outputs=(f"udpout:{gcs_address}",),
+        signing_key=KEY.hex(),
+        heartbeat_hz=10.0,
+    )
+    link.set_command_handler(lambda msg: ACCEPTED)
+    assert signed.wait_for("HEARTBEAT").get_signed()  # the signed peer refuses unsigned ones
+
+    unsigned = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+    frame = unsigned.command_long_encode(1, 191, USER_1, 0, 0, 0, 0, 0, 0, 0, 0).pack(unsigned)
+    signed.write(frame)
+    wait_until(lambda: link.output_stats[0].rejected_unsigned == 1, "the unsigned command refused")
+    command(signed, USER_1, (1, 191))
+    (ack,) = receive_acks(signed, 1)
+    assert ack.get_signed() and ack.result == ACCEPTED
+    assert link.stats.commands == 1
+    assert link.stats.rejected_unsigned == 0  # counted where it arrived
