@@ -19,17 +19,23 @@ import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from pathlib import Path
 from types import FrameType
 from typing import Any
+
+import can
 
 from bridge.busload import check_bus_load
 from bridge.can_io import SHAREABLE_INTERFACES, check_interface
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import LinkError
+from bridge.fanout import Fanout, make_table
 from bridge.mailbox import CommandMailbox, LoopState, LoopStats
 from bridge.mavlink_in import MavlinkLink
-from bridge.mixer import PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
+from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
 from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
+from bridge.record import Recording
+from bridge.zenoh_out import session_config
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +86,8 @@ def plan(config: BridgeConfig) -> Plan:
     if input_range is not None:
         definition = definition.with_input_range(*input_range)
     config = with_esc_count(config, len(definition.outputs))
+    if config.zenoh.enabled:
+        session_config(config.zenoh)  # a malformed endpoint is a config error, found now
     load = check_bus_load(config)
     return Plan(config, definition, load.describe(), input_range)
 
@@ -100,6 +108,8 @@ class MixerSink:
         self._wake_fd = wake.fileno() if wake is not None else None
         self._armed = False
         self.mixer_errors = 0
+        # The newest input and mix, for the telemetry publishers (replaced, never mutated).
+        self.last_input: tuple[list[float], list[float] | None, int] | None = None
 
     def on_actuators(self, values: list[float], time_ns: int) -> None:
         if self._axes is not None:
@@ -111,6 +121,7 @@ class MixerSink:
             log.exception("mixer failed; sending safe values")
             fractions = None
         self._mailbox.write(fractions, time_ns)
+        self.last_input = (values, fractions, time_ns)
         if self._wake_fd is not None:
             # A full pipe means a wake-up is already pending: the loop reads the newest anyway.
             with contextlib.suppress(BlockingIOError):
@@ -119,6 +130,10 @@ class MixerSink:
     def on_armed(self, armed: bool, time_ns: int) -> None:
         self._armed = armed
         self._mailbox.write_armed(armed, time_ns)
+
+    @property
+    def armed(self) -> bool:
+        return self._armed
 
 
 class LoopRunner:
@@ -184,6 +199,10 @@ class LoopRunner:
         elif self._thread is not None:
             self._thread.join(timeout_s)
 
+    def loop_bus(self) -> can.BusABC | None:
+        """The thread-mode loop's bus handle (None in process mode or while it is closed)."""
+        return self._loop.bus if self._loop is not None else None
+
     @property
     def exitcode(self) -> int | None:
         return None if self._process is None else self._process.exitcode
@@ -192,7 +211,7 @@ class LoopRunner:
 class Supervisor:
     """Starts the parts, watches the loop, reports transitions, stops cleanly."""
 
-    def __init__(self, plan: Plan) -> None:
+    def __init__(self, plan: Plan, record_dir: str | Path | None = None) -> None:
         self._plan = plan
         config = plan.config
         self._config = config
@@ -208,7 +227,27 @@ class Supervisor:
             channel_range = plan.input_range or PWM_RANGE_US
             axes = AxisChannels(config.mixer.axis_channels, channel_range)
         self.sink = MixerSink(Mixer(plan.mixer), self.mailbox, self.runner.wake_writer, axes)
-        self.link = MavlinkLink(config.mavlink, self.sink)
+        self.recording = Recording.open(Path(record_dir), config.can) if record_dir else None
+        tlog = self.recording.tlog if self.recording is not None else None
+        self.link = MavlinkLink(config.mavlink, self.sink, tlog=tlog)
+        # An interface only one handle can open is read through the thread-mode loop's handle.
+        own_handle = config.can.interface in SHAREABLE_INTERFACES | {"virtual"} or (
+            self.runner.mode == "process"
+        )
+        self.fanout = Fanout(
+            config,
+            make_table(config),
+            self.link,
+            health=self.health,
+            actuators_input=self.actuators_input,
+            actuators_output=self.actuators_output,
+            shared_bus=None
+            if own_handle or self.runner.mode == "process"
+            else self.runner.loop_bus,
+            recorder=self.recording.can if self.recording is not None else None,
+        )
+        self._output_ticks = (time.monotonic(), 0)
+        self._output_rate_hz = 0.0
         self._stop = threading.Event()
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
@@ -234,6 +273,7 @@ class Supervisor:
         try:
             self.runner.start()
             self._await_loop_start()
+            self.fanout.start()
             while not self._stop.wait(SUPERVISE_PERIOD_S):
                 if not self.runner.alive():
                     self._report(SEVERITY_CRITICAL, "ESC out: FAULT output loop died")
@@ -244,12 +284,16 @@ class Supervisor:
             self.runner.join(config.output.shutdown_flush_ms / 1000 + 5.0)
             self._watch()
             self._log_loop_summary()
+            self._log_telemetry_summary()
             log.info("stopped after sending safe values for %d ms", config.output.shutdown_flush_ms)
             return 0
         finally:
             self.runner.request_stop()
             self.runner.join(1.0)
+            self.fanout.close()
             self.link.close()
+            if self.recording is not None:
+                self.recording.close()
 
     def _await_loop_start(self) -> None:
         deadline = time.monotonic() + LOOP_START_TIMEOUT_S
@@ -271,8 +315,81 @@ class Supervisor:
                 "systemd unit grants it): expect ms of jitter when the machine is busy"
             )
 
+    # -- for the telemetry publishers (called from their threads) --------------------------
+
+    def health(self) -> dict[str, Any]:
+        """The bridge's health: loop state and rates, failsafe, counters."""
+        stats, link = self.stats, self.link.stats
+        state = LoopState(stats["state"])
+        return {
+            "state": state.name.lower(),
+            "failsafe": state != LoopState.RUNNING,
+            "armed": self.sink.armed,
+            "output": {
+                "rate_hz": round(self._output_rate_hz, 1),
+                "configured_rate_hz": self._config.rate_hz,
+                "ticks": stats["ticks"],
+                "frames_sent": stats["frames_sent"],
+                "send_errors": stats["send_errors"],
+                "overruns": stats["overruns"],
+                "tick_errors": stats["tick_errors"],
+                "bus_reopens": stats["bus_reopens"],
+                "realtime": bool(stats["realtime"]),
+            },
+            "input": {
+                "rate_hz": round(link.output_rate_hz, 1),
+                "outputs": link.outputs,
+                "messages": link.messages,
+                "bad_data": link.bad_data,
+                "mixer_errors": self.sink.mixer_errors,
+            },
+            "escs_online": sum(
+                1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online
+            ),
+            **self.fanout.counters(),
+        }
+
+    def actuators_input(self) -> dict[str, Any] | None:
+        """What came in: the autopilot's newest outputs (present channels) and their mix."""
+        last = self.sink.last_input
+        if last is None:
+            return None
+        values, fractions, time_ns = last
+        return {
+            "source": self._config.mavlink.source,
+            "armed": self.sink.armed,
+            "age_ms": round((time.monotonic_ns() - time_ns) / 1e6, 1),
+            "channels": {
+                name: value
+                for name, value in zip(INPUT_NAMES, values, strict=False)
+                if value == value  # NaN: channel absent
+            },
+            "mixed": fractions,
+        }
+
+    def actuators_output(self) -> dict[str, Any] | None:
+        """What went out: the last command on the bus for each ESC (read back) and why."""
+        escs = self.fanout.table.snapshot(time.monotonic_ns())
+        return {
+            "state": LoopState(self.stats["state"]).name.lower(),
+            "commands": [
+                {
+                    "motor": esc.motor,
+                    "node_id": esc.node_id,
+                    "value": esc.command,
+                    "unit": esc.command_unit,
+                }
+                for esc in escs
+            ],
+        }
+
     def _watch(self) -> None:
         stats = self.stats
+        now_s = time.monotonic()
+        since_s, ticks = self._output_ticks
+        if now_s - since_s >= 1.0:
+            self._output_rate_hz = (stats["ticks"] - ticks) / (now_s - since_s)
+            self._output_ticks = (now_s, stats["ticks"])
         state = LoopState(stats["state"])
         if state != self._reported_state and state in STATE_REPORTS:
             severity, text = STATE_REPORTS[state]
@@ -320,20 +437,36 @@ class Supervisor:
             len(lateness),
         )
 
+    def _log_telemetry_summary(self) -> None:
+        reader = self.fanout.reader
+        if reader is None:
+            return
+        stats = reader.stats
+        log.info(
+            "CAN in: %d frames read, %d telemetry, %d malformed, %d read errors; "
+            "%d of %d ESCs online",
+            stats.frames,
+            stats.telemetry,
+            stats.malformed,
+            stats.read_errors,
+            sum(1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online),
+            len(self.fanout.table),
+        )
+
     def _report(self, severity: int, text: str) -> None:
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO
         log.log(level, "%s", text)
         self.link.statustext(severity, text)
 
 
-def run(config: BridgeConfig) -> int:
+def run(config: BridgeConfig, record_dir: str | Path | None = None) -> int:
     """Run the bridge until SIGINT or SIGTERM; returns the process exit code.
 
     Raises:
         ConfigError: the configuration is invalid (before anything is sent).
         LinkError: the MAVLink link or the CAN bus could not be opened.
     """
-    supervisor = Supervisor(plan(config))
+    supervisor = Supervisor(plan(config), record_dir)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         log.info("%s: stopping", signal.Signals(signum).name)

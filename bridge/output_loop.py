@@ -85,6 +85,11 @@ class OutputLoop:
         self._reopen_at_ns = 0
         self._backoff_s = REOPEN_BACKOFF_S[0]
 
+    @property
+    def bus(self) -> can.BusABC | None:
+        """The bus handle in use (None while closed), for a reader sharing it in thread mode."""
+        return self._bus
+
     def request_stop(self) -> None:
         """Start the shutdown flush (also what the supervisor's ``stop_requested`` does)."""
         self._stats["stop_requested"] = 1

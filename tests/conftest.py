@@ -217,6 +217,8 @@ def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Dae
                 f"port={can_port}",
                 "--can-option",
                 "hop_limit=0",
+                # No Zenoh peer discovery: parallel test runs must never see each other.
+                "--no-zenoh-scouting",
                 *extra,
             ]
         )

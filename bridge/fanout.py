@@ -1,0 +1,150 @@
+"""ESC telemetry fan-out: CAN in -> decoders -> ESC state -> MAVLink and Zenoh publishers.
+
+Everything here runs in the main process, in threads of its own, and never touches the output
+loop: the loop is in another process (or, with an interface only one handle can open, shares
+its bus handle with the reader here and nothing else). A publisher that stalls (a slow Zenoh
+peer, a dead GCS link) delays only itself.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from bridge.can_in import CanReader, Recorder, learn_ckesc_ids
+from bridge.can_io import open_bus
+from bridge.config import BridgeConfig
+from bridge.mavlink_in import MavlinkLink
+from bridge.mavlink_out import MavlinkTelemetry
+from bridge.telemetry.state import EscTable, TelemetryLimits
+from bridge.zenoh_out import TelemetrySources, ZenohOut
+
+log = logging.getLogger(__name__)
+
+JsonSource = Callable[[], dict[str, Any] | None]
+
+
+def make_table(config: BridgeConfig) -> EscTable:
+    """The ESC state for ``config`` (its ESC lists already sized by ``with_esc_count``)."""
+    telemetry, escs = config.telemetry, config.escs
+    return EscTable(
+        escs.ids,
+        pole_pairs=telemetry.pole_pairs,
+        channels=escs.ckesc_channels if config.output.protocol == "ckesc" else None,
+        timeout_ms=telemetry.timeout_ms,
+        limits=TelemetryLimits(
+            max_temp_c=telemetry.max_temp_c,
+            max_current_a=telemetry.max_current_a,
+            max_rpm=telemetry.max_rpm,
+            error_burst=telemetry.error_burst,
+        ),
+    )
+
+
+class Fanout:
+    """The CAN reader and the publishers, started after the output loop, closed before exit."""
+
+    def __init__(
+        self,
+        config: BridgeConfig,
+        table: EscTable,
+        link: MavlinkLink,
+        *,
+        health: Callable[[], dict[str, Any]],
+        actuators_input: JsonSource,
+        actuators_output: JsonSource,
+        shared_bus: Callable[[], can.BusABC | None] | None = None,
+        recorder: Recorder | None = None,
+    ) -> None:
+        """``shared_bus``: read the output loop's handle instead of opening one of our own."""
+        self._config = config
+        self.table = table
+        self._shared_bus = shared_bus
+        self._recorder = recorder
+        self._own_bus: can.BusABC | None = None
+        self.reader: CanReader | None = None
+        self.mavlink = MavlinkTelemetry(config.mavlink, link, table)
+        self.zenoh: ZenohOut | None = None
+        if config.zenoh.enabled:
+            sources = TelemetrySources(table, health, actuators_input, actuators_output)
+            self.zenoh = ZenohOut(config.zenoh, sources)
+
+    def start(self) -> None:
+        """Open the reader's bus, learn CKESC node IDs if asked, start every thread.
+
+        Raises:
+            LinkError: the bus cannot be opened, or the ESCs' answers are inconsistent.
+        """
+        config = self._config
+        if self._shared_bus is None:
+            self._own_bus = open_bus(config.can, config.bitrate)
+            bus: Any = self._own_bus
+        else:
+            bus = self._shared_bus
+        if config.telemetry.learn_ids and config.output.protocol == "ckesc":
+            self._learn_ids(self._own_bus if self._shared_bus is None else self._shared_bus())
+        self.reader = CanReader(bus, self.table, config.output.protocol, self._recorder)
+        self.reader.start()
+        self.mavlink.start()
+        if self.zenoh is not None:
+            self.zenoh.start()
+
+    def _learn_ids(self, bus: can.BusABC | None) -> None:
+        if bus is None:
+            log.warning("cannot learn CKESC node IDs: the bus is not open")
+            return
+        channels = self._config.escs.ckesc_channels
+        found = learn_ckesc_ids(bus, channels)
+        ids = [
+            found.get(channel, node)
+            for channel, node in zip(channels, self.table.node_ids, strict=True)
+        ]
+        missing = [i + 1 for i, channel in enumerate(channels) if channel not in found]
+        if len(set(ids)) != len(ids):
+            log.warning(
+                "GET_ESC_ID answers %s clash with the configured IDs; keeping [escs] ids %s",
+                found,
+                list(self.table.node_ids),
+            )
+            return
+        self.table.remap(ids)
+        log.info(
+            "CKESC node IDs by motor (GET_ESC_ID): %s%s",
+            ids,
+            f"; motors {missing} did not answer, configured IDs kept" if missing else "",
+        )
+
+    def close(self) -> None:
+        """Stop the publishers and the reader; close our bus handle."""
+        if self.zenoh is not None:
+            self.zenoh.close()
+        self.mavlink.close()
+        if self.reader is not None:
+            self.reader.close()
+        if self._own_bus is not None:
+            self._own_bus.shutdown()
+            self._own_bus = None
+
+    def counters(self) -> dict[str, Any]:
+        """The reader's and Zenoh's counters, for the bridge's health."""
+        reader = self.reader.stats if self.reader is not None else None
+        result: dict[str, Any] = {
+            "can_rx": {
+                "frames": reader.frames if reader else 0,
+                "telemetry": reader.telemetry if reader else 0,
+                "malformed": reader.malformed if reader else 0,
+                "read_errors": reader.read_errors if reader else 0,
+                "unknown_esc_frames": self.table.unknown_frames,
+            }
+        }
+        if self.zenoh is not None:
+            stats = self.zenoh.stats
+            result["zenoh"] = {
+                "session_up": stats.session_up,
+                "published": stats.published,
+                "dropped": stats.dropped,
+            }
+        return result
