@@ -123,7 +123,7 @@ def _reader(mailbox: CommandMailbox, ready: Any, out: multiprocessing.Queue[list
             continue
         values = commands.fractions
         assert len(set(values)) == 1, f"torn read: {values}"
-        assert commands.time_ns == int(values[0] * 1e9), "time and values from different writes"
+        assert commands.time_ns == round(values[0] * 1e9), "time and values from different writes"
         if not seen or seen[-1][0] != commands.seq:
             seen.append((commands.seq, values[0]))
         if values[0] == 1.0:
@@ -139,12 +139,16 @@ def test_mailbox_reads_whole_writes_across_processes() -> None:
     reader = ctx.Process(target=_reader, args=(mailbox, ready, results))
     reader.start()
     assert ready.wait(30)
-    writes = 200_000
-    for i in range(1, writes + 1):
-        value = i / writes
-        mailbox.write([value] * 16, int(value * 1e9))
+    # Write for at least 1.5 s, so that a reader process the OS schedules late (a loaded
+    # machine) still overlaps many writes.
+    start = time.monotonic()
+    writes = 0
+    while writes < 200_000 or time.monotonic() - start < 1.5:
+        writes += 1
+        mailbox.write([writes / 1e9] * 16, writes)
+    mailbox.write([1.0] * 16, 1_000_000_000)
     distinct, last = results.get(timeout=30)
     reader.join(10)
     assert reader.exitcode == 0
-    assert last == (2 * writes, 1.0)
+    assert last == (2 * (writes + 1), 1.0)
     assert distinct > 100, "the reader should have seen writes in progress, not just the last"

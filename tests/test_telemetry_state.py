@@ -353,3 +353,23 @@ def test_two_escs_on_one_channel_are_refused() -> None:
         thread.join()
         host.shutdown()
         escs.shutdown()
+
+
+def test_the_reader_socket_buffer_can_be_enlarged() -> None:
+    from pathlib import Path
+
+    from conftest import free_port, multicast_bus
+
+    from bridge.can_io import enlarge_receive_buffer
+
+    rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    bus = multicast_bus(free_port())
+    virtual = can.Bus(interface="virtual", channel="test_rcvbuf")
+    try:
+        wanted = 4 * 1024 * 1024
+        # Linux doubles the asked size for its bookkeeping, after capping it at rmem_max.
+        assert enlarge_receive_buffer(bus, wanted) == 2 * min(wanted, rmem_max)
+        assert enlarge_receive_buffer(virtual, wanted) is None  # no socket to size
+    finally:
+        bus.shutdown()
+        virtual.shutdown()
