@@ -116,9 +116,11 @@ def test_ft_modes(
 
     observer.wait_for(matches, ARM_TIMEOUT_S)
     # Spread, not burst: consecutive commands go to consecutive ESCs, ~2.5 ms apart at 100 Hz.
+    # Kernel receive times (udp_multicast stamps each datagram), not when the observer's
+    # thread got to them: on a loaded machine it reads in batches.
     recent = [
-        (ts, f.esc_id)
-        for ts, m in observer.frames[-40:]
+        (m.timestamp, f.esc_id)
+        for _, m in observer.frames[-40:]
         if (f := ft.decode(m)) is not None and isinstance(f.message, record)
     ]
     ids = [esc for _, esc in recent]
@@ -207,7 +209,10 @@ def test_other_senders_are_ignored(
         since = time.monotonic()
         time.sleep(1.0)
         seen = {t for m in observer.since(since) if (t := ckesc_throttles(m)) is not None}
-        assert seen == {(1000, 1000, 1000, 1000)}
+        # Never the intruder's full throttle. (A safe (0, 0, 0, 0) may show up when a loaded
+        # machine delays the autopilot's stream past the input timeout.)
+        assert (1000, 1000, 1000, 1000) in seen
+        assert seen <= {(1000, 1000, 1000, 1000), (0, 0, 0, 0)}
         # When the autopilot disarms, the intruder's "armed" heartbeats do not keep it armed.
         autopilot.armed = False
         expect_throttles(observer, (0, 0, 0, 0), 2.0)
