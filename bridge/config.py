@@ -262,6 +262,11 @@ class OutputConfig:
         100, _int_range(20, 1000), "input older than this is stale: safe values are sent"
     )
     shutdown_flush_ms: int = key(200, _int_range(0, 5000), "safe values sent this long on exit")
+    motor_test_max_s: float = key(
+        10.0,
+        _float_range(0.1, 600),
+        "longest motor test per motor (MAV_CMD_DO_MOTOR_TEST timeout), s; longer ones are cut",
+    )
     loop: LoopMode = key(
         "auto",
         _choice("auto", "process", "thread"),

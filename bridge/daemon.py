@@ -5,7 +5,8 @@ URL), then starts the output loop, which sends safe values until valid, armed, f
 arrives. The supervisor (this module, in the main process) never touches the hot path: it
 samples the loop's counters a few times a second to log and to report each state transition
 by STATUSTEXT, and on SIGINT/SIGTERM asks the loop to send safe values for
-``shutdown_flush_ms`` and stop.
+``shutdown_flush_ms`` and stop. A ground station's MAV_CMD_DO_MOTOR_TEST is decided here
+(:class:`MotorTestControl`) and run by the loop while the autopilot is disarmed.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import FrameType
+from types import FrameType, ModuleType
 from typing import Any
 
 import can
@@ -33,6 +35,15 @@ from bridge.fanout import Fanout, make_table
 from bridge.mailbox import CommandMailbox, LoopState, LoopStats
 from bridge.mavlink_in import MavlinkLink
 from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
+from bridge.motor_test import (
+    Decision,
+    MotorTestCommand,
+    MotorTestLimits,
+    MotorTestPlan,
+    Verdict,
+    decide,
+    limits_for,
+)
 from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
 from bridge.record import Recording
 from bridge.zenoh_out import session_config
@@ -61,7 +72,14 @@ STATE_REPORTS: dict[LoopState, tuple[int, str]] = {
     LoopState.INVALID: (SEVERITY_CRITICAL, "ESC out: FAILSAFE invalid input, motors stopped"),
     LoopState.RUNNING: (SEVERITY_INFO, "ESC out: armed, sending motor commands"),
     LoopState.STOPPING: (SEVERITY_NOTICE, "ESC out: shutting down, motors stopped"),
+    LoopState.MOTOR_TEST: (SEVERITY_WARNING, "ESC out: MOTOR TEST, one motor may spin"),
 }
+# A motor test starts only while the autopilot's arming state is this fresh (HEARTBEAT: 1 Hz).
+ARMING_STATE_MAX_AGE_NS = 3_000_000_000
+# Loop states in which a motor test cannot start: the loop is not (or no longer) sending.
+NOT_SENDING = frozenset(
+    {LoopState.STARTING, LoopState.STOPPING, LoopState.STOPPED, LoopState.FAILED}
+)
 
 
 @dataclass(frozen=True)
@@ -107,6 +125,7 @@ class MixerSink:
         self._mailbox = mailbox
         self._wake_fd = wake.fileno() if wake is not None else None
         self._armed = False
+        self.armed_at_ns = 0  # monotonic time of the last arming state heard; 0 = never
         self.mixer_errors = 0
         # The newest input and mix, for the telemetry publishers (replaced, never mutated).
         self.last_input: tuple[list[float], list[float] | None, int] | None = None
@@ -129,11 +148,124 @@ class MixerSink:
 
     def on_armed(self, armed: bool, time_ns: int) -> None:
         self._armed = armed
+        self.armed_at_ns = time_ns
         self._mailbox.write_armed(armed, time_ns)
 
     @property
     def armed(self) -> bool:
         return self._armed
+
+
+class MotorTestControl:
+    """MAV_CMD_DO_MOTOR_TEST: checked on a MAVLink reader thread (:meth:`handle_command`),
+    handed to the output loop through the mailbox, followed and reported by the supervisor
+    (:meth:`watch`).
+
+    A valid test (:func:`bridge.motor_test.decide`) starts only while the autopilot is known to
+    be disarmed (its arming state heard within :data:`ARMING_STATE_MAX_AGE_NS`) and the loop
+    is sending; otherwise MAV_RESULT_TEMPORARILY_REJECTED, with a STATUSTEXT saying why. A new
+    command replaces a running test; throttle 0 stops it. The loop ends a test by itself at its
+    time or the moment the autopilot arms; this class only reports it.
+    """
+
+    def __init__(
+        self,
+        limits: MotorTestLimits,
+        mailbox: CommandMailbox,
+        sink: MixerSink,
+        stats: LoopStats,
+        report: Callable[[int, str], None],
+        dialect: ModuleType,
+    ) -> None:
+        self._limits = limits
+        self._mailbox = mailbox
+        self._sink = sink
+        self._stats = stats
+        self._report = report
+        self._command_id: int = dialect.MAV_CMD_DO_MOTOR_TEST
+        self._results = {v: int(getattr(dialect, f"MAV_RESULT_{v.value}")) for v in Verdict}
+        # Commands come from every connection's reader thread and the supervisor cancels: the
+        # lock keeps the mailbox's motor-test block to one writer at a time.
+        self._lock = threading.Lock()
+        self._running: tuple[MotorTestPlan, int] | None = None  # the plan and its end, ns
+        self._reported_motor = 0
+
+    def handle_command(self, msg: Any) -> int | None:
+        """The link's command handler: a MAV_RESULT for DO_MOTOR_TEST, None for the others."""
+        if msg.command != self._command_id:
+            return None
+        command = MotorTestCommand(
+            msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6
+        )
+        decision = decide(command, self._limits)
+        with self._lock:
+            if decision.verdict is Verdict.ACCEPTED:
+                decision = self._start(decision)
+        severity = SEVERITY_NOTICE if decision.verdict is Verdict.ACCEPTED else SEVERITY_WARNING
+        self._report(severity, decision.text)
+        return self._results[decision.verdict]
+
+    def _start(self, decision: Decision) -> Decision:
+        """Run an accepted decision, or refuse it for now. Called with the lock held."""
+        plan = decision.plan
+        if plan is None:  # throttle 0: stop, whatever the vehicle does
+            self._mailbox.stop_motor_test()
+            self._running = None
+            return decision
+        now = time.monotonic_ns()
+        sink = self._sink
+        if sink.armed:
+            why = "vehicle armed"
+        elif not sink.armed_at_ns or now - sink.armed_at_ns > ARMING_STATE_MAX_AGE_NS:
+            why = "autopilot not heard"
+        elif LoopState(self._stats["state"]) in NOT_SENDING:
+            why = "bridge not sending"
+        else:
+            on_ns = round(plan.on_s * 1e9)
+            step_ns = on_ns + round(plan.gap_s * 1e9)
+            self._mailbox.write_motor_test(
+                plan.first, plan.count, plan.fraction, now, on_ns, step_ns
+            )
+            self._running = (plan, now + round(plan.total_s * 1e9))
+            self._reported_motor = 0
+            return decision
+        return Decision(Verdict.TEMPORARILY_REJECTED, f"Motor test refused: {why}")
+
+    def watch(self) -> None:
+        """From the supervisor, a few times a second: report each motor of a sequence as it
+        starts, and the end of a test (its time, or the autopilot arming)."""
+        with self._lock:
+            if self._running is None:
+                return
+            plan, until_ns = self._running
+            motor = self._stats["motor_test_motor"]
+            if self._sink.armed:
+                self._mailbox.stop_motor_test()  # the loop has stopped it already
+                self._running = None
+                text = "Motor test: stopped, vehicle armed"
+            elif time.monotonic_ns() >= until_ns:
+                self._running = None
+                text = "Motor test: done, motors safe"
+            elif plan.count > 1 and motor and motor != self._reported_motor:
+                self._reported_motor = motor
+                text = f"Motor test: motor {motor}"
+            else:
+                return
+        self._report(SEVERITY_INFO, text)
+
+    def snapshot(self) -> dict[str, Any] | None:
+        """The running test for the health report, or None."""
+        with self._lock:
+            running = self._running
+        if running is None:
+            return None
+        plan, until_ns = running
+        return {
+            "motor": self._stats["motor_test_motor"] or None,  # None between two motors
+            "motors": list(range(plan.first + 1, plan.first + plan.count + 1)),
+            "throttle": plan.fraction,
+            "remaining_s": round(max(0.0, (until_ns - time.monotonic_ns()) / 1e9), 2),
+        }
 
 
 class LoopRunner:
@@ -230,6 +362,15 @@ class Supervisor:
         self.recording = Recording.open(Path(record_dir), config.can) if record_dir else None
         tlog = self.recording.tlog if self.recording is not None else None
         self.link = MavlinkLink(config.mavlink, self.sink, tlog=tlog)
+        self.motor_test = MotorTestControl(
+            limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
+            self.mailbox,
+            self.sink,
+            self.stats,
+            self._report,
+            self.link.dialect,
+        )
+        self.link.add_command_handler(self.motor_test.handle_command)
         # An interface only one handle can open is read through the thread-mode loop's handle.
         own_handle = config.can.interface in SHAREABLE_INTERFACES | {"virtual"} or (
             self.runner.mode == "process"
@@ -325,6 +466,7 @@ class Supervisor:
             "state": state.name.lower(),
             "failsafe": state != LoopState.RUNNING,
             "armed": self.sink.armed,
+            "motor_test": self.motor_test.snapshot(),
             "output": {
                 "rate_hz": round(self._output_rate_hz, 1),
                 "configured_rate_hz": self._config.rate_hz,
@@ -395,6 +537,7 @@ class Supervisor:
             severity, text = STATE_REPORTS[state]
             self._report(severity, text)
         self._reported_state = state
+        self.motor_test.watch()
         tick_errors = stats["tick_errors"]
         if tick_errors != self._tick_errors:
             self._report(SEVERITY_CRITICAL, "ESC out: FAULT encoding commands, motors safe")

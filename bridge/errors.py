@@ -5,6 +5,10 @@
     BridgeError
     ├── ConfigError (ValueError)          a configuration or CLI argument is wrong
     ├── LinkError (ConnectionError)       a CAN bus or MAVLink link cannot be opened or used
+    │   └── NoAnswerError (TimeoutError)  an ESC did not answer a request within the timeout
+    │       └── WrongNodeError            ... but another node answered it
+    ├── SetupError                        an ESC set-up step cannot be done as the bus stands
+    │   └── RefusedError                  an ESC answered with values other than those asked
     └── CodecError (ValueError)           a CAN frame or a value cannot be coded
         ├── ValueRangeError               encode: a value outside the protocol's range
         └── FrameError                    decode: a frame that claims to be ours is malformed
@@ -32,6 +36,22 @@ class ConfigError(BridgeError, ValueError):
 
 class LinkError(BridgeError, ConnectionError):
     """A CAN bus or MAVLink link could not be opened, or failed beyond recovery."""
+
+
+class NoAnswerError(LinkError, TimeoutError):
+    """An ESC did not answer a request (or acknowledge a broadcast) within the timeout."""
+
+
+class WrongNodeError(NoAnswerError):
+    """The addressed ESC did not answer, but another node sent the answer to the request."""
+
+
+class SetupError(BridgeError):
+    """An ESC set-up step cannot be done as the bus stands (e.g. Set ID with several ESCs)."""
+
+
+class RefusedError(SetupError):
+    """An ESC answered a setting with the values in effect, which differ from those asked."""
 
 
 class CodecError(BridgeError, ValueError):

@@ -26,8 +26,9 @@ every connection signs what it sends and refuses unsigned input, outputs include
 
 Commands (COMMAND_LONG): addressed to the bridge means ``target_system`` is the vehicle's system
 ID or 0 (broadcast) and ``target_component`` is ``component_id`` or 0, from any sender on any
-connection. The registered handler (:meth:`MavlinkLink.set_command_handler`) returns a
-MAV_RESULT, or ``None`` for "not mine". The COMMAND_ACK goes back to the sender on the
+connection. The registered handlers (:meth:`MavlinkLink.add_command_handler`) are asked in
+the order they were added; each returns a MAV_RESULT, or ``None`` for "not mine", and the first
+answer wins. The COMMAND_ACK goes back to the sender on the
 connection the command came in on, only: the autopilot would otherwise forward a GCS's answers
 back to it a second time. A command nobody claims is answered MAV_RESULT_UNSUPPORTED only when it
 named the bridge exactly (system and component); broadcasts nobody claims get no answer.
@@ -370,7 +371,9 @@ class MavlinkLink:
         self._uplink: _Connection | None = None  # the autopilot's connection, once started
         self._started = False
         self._closed = False
-        self._command_handler: CommandHandler | None = None
+        # Replaced, never mutated: a reader walks the tuple it found without a lock.
+        self._command_handlers: tuple[CommandHandler, ...] = ()
+        self._handlers_lock = threading.Lock()  # serializes add/remove only
         self._dialect = load_dialect()
         # Our system ID is the vehicle's: the bridge is one more component of it.
         self._mav: Any = _codec_class(self._dialect)(
@@ -412,17 +415,25 @@ class MavlinkLink:
         """The dialect module the link speaks (its constants: ``MAV_RESULT_*``, message IDs)."""
         return self._dialect
 
-    def set_command_handler(self, handler: CommandHandler | None) -> None:
-        """Pass COMMAND_LONGs addressed to the bridge to ``handler`` (replacing the previous one;
-        ``None`` removes it).
+    def add_command_handler(self, handler: CommandHandler) -> None:
+        """Pass COMMAND_LONGs addressed to the bridge to ``handler`` too, after the handlers
+        added before it (adding one twice does nothing).
 
-        The handler runs on a reader thread: keep it short and never wait there for a reply. It
-        returns a MAV_RESULT, which the link sends back as COMMAND_ACK, or ``None`` when the
-        command is not its (see the module docstring for who gets an answer). If it raises, the
-        error is counted and logged and a command that named the bridge exactly is answered
+        Handlers run on a reader thread: keep them short and never wait there for a reply. Each
+        returns a MAV_RESULT, or ``None`` when the command is not its; the first MAV_RESULT is
+        sent back as COMMAND_ACK and the later handlers are not asked (see the module docstring
+        for who gets an answer). A handler that raises is counted and logged and the next one
+        is asked; if none answers, a command that named the bridge exactly is answered
         MAV_RESULT_FAILED.
         """
-        self._command_handler = handler
+        with self._handlers_lock:  # two threads adding at once must not lose one
+            if handler not in self._command_handlers:
+                self._command_handlers = (*self._command_handlers, handler)
+
+    def remove_command_handler(self, handler: CommandHandler) -> None:
+        """Stop passing commands to ``handler``; removing one that is not there does nothing."""
+        with self._handlers_lock:
+            self._command_handlers = tuple(h for h in self._command_handlers if h != handler)
 
     def start(self) -> None:
         """Check every URL, open the autopilot's connection and the outputs, start the threads.
@@ -870,22 +881,27 @@ class MavlinkLink:
             return
         self.stats.commands += 1
         named_us = target == ours
-        handler = self._command_handler
         result: int | None = None
-        if handler is not None:
+        failed = False
+        for handler in self._command_handlers:
             try:
                 result = handler(msg)
-            # The handler's fault must not stop the reader; the sender learns it failed.
+            # A handler's fault must not stop the reader; the sender learns it failed.
             except Exception:  # noqa: BLE001
                 connection.counters.handler_errors += 1
                 _log_sparsely(
                     logging.ERROR,
                     connection.counters.handler_errors,
-                    "MAVLink command %d: the handler raised",
+                    "MAVLink command %d: a handler raised",
                     msg.command,
                     exc_info=True,
                 )
-                result = self._dialect.MAV_RESULT_FAILED if named_us else None
+                failed = True
+                continue
+            if result is not None:
+                break
+        if result is None and failed and named_us:
+            result = self._dialect.MAV_RESULT_FAILED
         if result is None:
             if not named_us:
                 return  # a broadcast nobody here handles is not ours to refuse

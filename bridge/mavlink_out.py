@@ -291,7 +291,7 @@ class MavlinkTelemetry:
         """
         if self._thread is not None or self._closed:
             raise RuntimeError("a MavlinkTelemetry can be started once, and not after close()")
-        self._link.set_command_handler(self.handle_command)
+        self._link.add_command_handler(self.handle_command)
         self._thread = threading.Thread(target=self._run, name="mavlink-telemetry", daemon=True)
         self._thread.start()
         log.info(
@@ -306,7 +306,7 @@ class MavlinkTelemetry:
         self._closed = True
         if self._thread is None:
             return
-        self._link.set_command_handler(None)
+        self._link.remove_command_handler(self.handle_command)
         self._stop.set()
         self._wake.set()
         self._thread.join(_JOIN_TIMEOUT_S)

@@ -2,8 +2,12 @@
 
 Every tick it reads the newest commands from the mailbox, decides whether they may be sent
 (armed, fresh, valid, not stopping) and sends either them, rate-limited by the slew limiter, or
-the safe values. It sleeps to absolute deadlines on the monotonic clock, so it does not drift;
-a tick it wakes too late for is counted as an overrun and skipped, never caught up in a burst.
+the safe values. While the autopilot is disarmed a motor test from the mailbox (a ground
+station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.motor_test`) takes the place of the safe
+values: one motor at its test throttle, every other one safe, until the test's time is up or
+the autopilot arms, whichever comes first. It sleeps to absolute deadlines on the monotonic
+clock, so it does not drift; a tick it wakes too late for is counted as an overrun and skipped,
+never caught up in a burst.
 
 Nothing here blocks, logs or waits on another part of the bridge: sends are non-blocking and
 a failed one is counted (the bus is reopened with backoff when it is gone), the mailbox and the
@@ -30,8 +34,9 @@ from bridge.can_io import is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import make_driver
-from bridge.mailbox import LATENESS_RING, CommandMailbox, LoopState, LoopStats
+from bridge.mailbox import LATENESS_RING, CommandMailbox, LoopState, LoopStats, MotorTest
 from bridge.mixer import MixerDefinition, SlewLimiter
+from bridge.motor_test import test_frames
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +127,7 @@ class OutputLoop:
         state_i, ticks_i, sent_i = slot("state"), slot("ticks"), slot("frames_sent")
         overruns_i, immediate_i = slot("overruns"), slot("immediate_sends")
         lateness_count_i, stop_i = slot("lateness_count"), slot("stop_requested")
-        tick_errors_i = slot("tick_errors")
+        tick_errors_i, test_motor_i = slot("tick_errors"), slot("motor_test_motor")
         lateness = self._stats.lateness_ring
         mailbox, driver, slew = self._mailbox, self._driver, self._slew
         require_armed = self._config.output.require_armed
@@ -132,6 +137,12 @@ class OutputLoop:
         wake_fd = self._wake_fd
         monotonic_ns, sleep = time.monotonic_ns, time.sleep
         parent = os.getppid()
+        # A motor test (MAV_CMD_DO_MOTOR_TEST): the newest one read and when it ends; a vector
+        # of zeros but for the motor under test, made once and updated in place.
+        test: MotorTest | None = None
+        test_seq = test_until_ns = 0
+        test_index = -1
+        test_fractions = [0.0] * len(self._zeros)
 
         state = LoopState.NO_INPUT
         counters[state_i] = state
@@ -161,8 +172,19 @@ class OutputLoop:
             ):
                 stop_at_ns = now + self._flush_ns
             commands = mailbox.read()
+            fresh_test = mailbox.read_motor_test(test_seq)  # the one extra read per tick
+            if fresh_test is not None:
+                test, test_seq, test_until_ns = fresh_test, fresh_test.seq, fresh_test.until_ns
+            testing = False
+            if now < test_until_ns:
+                if mailbox.read_armed():
+                    test_until_ns = 0  # arming ends a motor test for good, at once
+                else:
+                    testing = True
             if stop_at_ns:
                 new_state = LoopState.STOPPING
+            elif testing:
+                new_state = LoopState.MOTOR_TEST
             elif commands is None:
                 new_state = LoopState.NO_INPUT
             elif require_armed and not mailbox.read_armed():
@@ -176,11 +198,28 @@ class OutputLoop:
             if new_state != state:
                 if new_state == LoopState.RUNNING:
                     slew.reset(self._zeros)  # after any safe spell, spool up from stopped
+                if state == LoopState.MOTOR_TEST and test_index >= 0:
+                    test_fractions[test_index] = 0.0
+                    test_index = -1
+                    counters[test_motor_i] = 0
                 state = new_state
                 counters[state_i] = state
 
             frames = None
-            if state == LoopState.RUNNING and commands is not None:
+            if state == LoopState.MOTOR_TEST and test is not None:
+                index = test.index_at(now)
+                if index != test_index:
+                    if test_index >= 0:
+                        test_fractions[test_index] = 0.0
+                    test_index = index
+                    counters[test_motor_i] = index + 1
+                if index >= 0:
+                    test_fractions[index] = test.fraction
+                    try:
+                        frames = test_frames(driver, tick, test_fractions, index)
+                    except Exception:  # noqa: BLE001 - as below: safe values this tick
+                        counters[tick_errors_i] += 1
+            elif state == LoopState.RUNNING and commands is not None:
                 try:
                     frames = driver.tick_frames(
                         tick, slew.apply(commands.fractions, (now - last_ns) / 1e9)

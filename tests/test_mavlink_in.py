@@ -778,7 +778,7 @@ def test_commands_addressed_to_the_bridge_reach_the_handler_and_are_acked(
             raise RuntimeError("handler fault")
         return ACCEPTED if msg.command == USER_1 else None
 
-    link.set_command_handler(handler)
+    link.add_command_handler(handler)
     command(gcs, USER_1, ours)
     command(gcs, USER_1, to_vehicle)
     command(gcs, USER_1, to_all)
@@ -814,6 +814,55 @@ def test_commands_addressed_to_the_bridge_reach_the_handler_and_are_acked(
     assert link.stats.handler_errors == 1
 
 
+def test_several_handlers_are_asked_in_order_and_the_first_answer_wins(
+    make_link: MakeLink, make_peer: MakePeer, udp_address: str
+) -> None:
+    link, _ = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
+    gcs = make_peer(f"udpout:{udp_address}", system=255, component=190)
+    asked: list[tuple[str, int]] = []
+
+    def first(msg: Any) -> int | None:
+        asked.append(("first", msg.command))
+        if msg.command == USER_3:
+            raise RuntimeError("handler fault")
+        return ACCEPTED if msg.command == USER_1 else None
+
+    def second(msg: Any) -> int | None:
+        asked.append(("second", msg.command))
+        return mavlink2.MAV_RESULT_DENIED if msg.command in (USER_1, USER_2) else None
+
+    link.add_command_handler(first)
+    link.add_command_handler(second)
+    link.add_command_handler(first)  # already there: still asked once
+    for cmd in (USER_1, USER_2, USER_3):
+        command(gcs, cmd, (1, 191))
+    acks = receive_acks(gcs, 3)
+    link.remove_command_handler(first)
+    command(gcs, USER_1, (1, 191))
+    acks += receive_acks(gcs, 1)
+    link.remove_command_handler(second)
+    link.remove_command_handler(second)  # not there: nothing happens
+    command(gcs, USER_1, (1, 191))
+    acks += receive_acks(gcs, 1)
+
+    assert [(a.command, a.result) for a in acks] == [
+        (USER_1, ACCEPTED),  # the first handler's answer; the second is not asked
+        (USER_2, mavlink2.MAV_RESULT_DENIED),  # the first passed it on
+        (USER_3, mavlink2.MAV_RESULT_FAILED),  # the first raised and nobody else answered
+        (USER_1, mavlink2.MAV_RESULT_DENIED),  # the first was removed
+        (USER_1, mavlink2.MAV_RESULT_UNSUPPORTED),  # nobody left
+    ]
+    assert asked == [
+        ("first", USER_1),
+        ("first", USER_2),
+        ("second", USER_2),
+        ("first", USER_3),
+        ("second", USER_3),
+        ("second", USER_1),
+    ]
+    assert link.stats.handler_errors == 1
+
+
 def test_a_command_from_an_output_is_answered_there_only(
     make_link: MakeLink, make_peer: MakePeer
 ) -> None:
@@ -824,7 +873,7 @@ def test_a_command_from_an_output_is_answered_there_only(
     link, _ = make_link(
         f"udpout:{autopilot_address}", outputs=(f"udpout:{gcs_address}",), stream_rate_hz=0.0
     )
-    link.set_command_handler(lambda msg: ACCEPTED)
+    link.add_command_handler(lambda msg: ACCEPTED)
     gcs.wait_for("HEARTBEAT")  # now the GCS knows where to answer
 
     command(gcs, USER_1, (1, 191))
@@ -852,7 +901,7 @@ def test_tlog_records_everything_received_and_sent_once(
         )
         with link:
             link.start()
-            link.set_command_handler(lambda msg: ACCEPTED)
+            link.add_command_handler(lambda msg: ACCEPTED)
             autopilot = make_peer(f"udpout:{udp_address}")
             autopilot.send(heartbeat(autopilot.mav, armed=True))
             autopilot.send(servo(autopilot.mav, 0, [1234]))
@@ -916,7 +965,7 @@ def test_with_a_signing_key_outputs_sign_and_refuse_unsigned_commands(
         signing_key=KEY.hex(),
         heartbeat_hz=10.0,
     )
-    link.set_command_handler(lambda msg: ACCEPTED)
+    link.add_command_handler(lambda msg: ACCEPTED)
     assert signed.wait_for("HEARTBEAT").get_signed()  # the signed peer refuses unsigned ones
 
     unsigned = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)

@@ -523,6 +523,29 @@ def test_commands_about_other_messages_are_not_claimed(make_bridge: MakeBridge) 
     assert bridge.telemetry.rate_hz("esc_status") == 10.0
 
 
+def test_telemetry_shares_the_link_with_other_command_handlers(make_bridge: MakeBridge) -> None:
+    table = make_table(4)
+    populate(table, 4)
+    bridge = make_bridge(table, esc_status_hz=0.0, esc_info_hz=0.0, esc_telemetry_hz=0.0)
+    gcs = bridge.gcs
+    set_interval, motor_test = DIALECT.MAV_CMD_SET_MESSAGE_INTERVAL, DIALECT.MAV_CMD_DO_MOTOR_TEST
+
+    def other(msg: Any) -> int | None:
+        return int(DIALECT.MAV_RESULT_DENIED) if msg.command == motor_test else None
+
+    bridge.link.add_command_handler(other)
+    gcs.wait_for("HEARTBEAT")
+    since = gcs.command(set_interval, 291, 100_000)
+    assert gcs.ack(set_interval, since).result == DIALECT.MAV_RESULT_ACCEPTED
+    since = gcs.command(motor_test, 1)
+    assert gcs.ack(motor_test, since).result == DIALECT.MAV_RESULT_DENIED
+    bridge.telemetry.close()  # takes its own handler away, and only that one
+    since = gcs.command(set_interval, 291, 100_000)
+    assert gcs.ack(set_interval, since).result == DIALECT.MAV_RESULT_UNSUPPORTED
+    since = gcs.command(motor_test, 1)
+    assert gcs.ack(motor_test, since).result == DIALECT.MAV_RESULT_DENIED
+
+
 def test_request_message_sends_once_now(make_bridge: MakeBridge) -> None:
     table = make_table(6)
     expected = populate(table, 6)

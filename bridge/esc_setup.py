@@ -1,0 +1,912 @@
+"""Setting up CKESC ESCs over any python-can bus: request, answer, check. No printing.
+
+:class:`CkescClient` is the engine of ``esc-bridge esc``: it sends one request at a time from
+the host and reads the bus until the matching answer arrives or its timeout passes, then checks
+the answer. The wire is PROTOCOLS.md §1 and every frame goes through the production codec
+(:mod:`bridge.escs.ckesc`), so values outside the protocol's range raise
+:class:`~bridge.errors.ValueRangeError` before anything is sent.
+
+A service response matches a request when it has the request's service type, is addressed to
+the host, carries the request's transfer ID and comes from the addressed node. Broadcast
+requests (GET_ESC_ID, MSGControl) are answered by every ESC (node_id % 32) x 2 ms later, so
+the client waits out that window (64 ms) plus its timeout and keeps every answer.
+
+Errors (see :mod:`bridge.errors`): :class:`~bridge.errors.NoAnswerError` (nothing in time; a
+:class:`~bridge.errors.WrongNodeError` when another node answered instead),
+:class:`~bridge.errors.RefusedError` (the ESC answered with values other than those asked),
+:class:`~bridge.errors.SetupError` (a step that cannot be done as the bus stands),
+:class:`~bridge.errors.LinkError` (the bus failed), :class:`~bridge.errors.ValueRangeError`.
+
+Decisions where the spec is silent
+----------------------------------
+- **Refused.** An ESC that refuses a setting answers with the values in effect (the simulated
+  ESC does; the seed says nothing): an answer that differs from the request is a refusal, and
+  the error names what was asked, what is in effect and the condition the seed puts on it.
+- **Set ID** reaches every ESC on the bus (its destination is ignored), so :meth:`set_id`
+  asks GET_ESC_ID first and sends nothing unless exactly one ESC answers. Its response may
+  come from the old or the new node ID (the simulated ESC answers from the new one).
+- **Expand Set** has no response. :meth:`~CkescClient.expand` first asks the ESC for its
+  information (so a missing ESC is an error, not silence), sends the command, then checks what
+  Get Major Configuration shows of it (direction, LED colour, CAN or PWM+CAN interface);
+  READ_TEMP_RECORD returns the four MSG_EXP12 records the ESC sends in answer.
+- **MSGControl and CANTest are broadcasts**: every ESC on the bus acts on them. A ``node``
+  only names the ESC whose acknowledgement (or CANTest reports) is required. CANTest "leave" is
+  sent however the test ends. Lost frames are the counter's span minus the reports received.
+- Frames already queued when a request goes out are dropped first (old answers, telemetry).
+  A frame with the expected CAN ID that does not decode is remembered and named if no good
+  answer follows; any other frame is skipped.
+- Broadcast requests come from node 0, as the codec requires; service requests come from
+  ``host_node`` (0 unless told) and their responses must be addressed to it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Collection, Iterable
+from dataclasses import dataclass
+from typing import Final, TypeVar, cast
+
+import can
+
+from bridge.errors import (
+    CodecError,
+    LinkError,
+    NoAnswerError,
+    RefusedError,
+    SetupError,
+    ValueRangeError,
+    WrongNodeError,
+)
+from bridge.escs import ckesc
+from bridge.escs.ckesc import (
+    CanTestOption,
+    CanTestReport,
+    CanTestRequest,
+    CkescFrame,
+    CkescMessage,
+    EscInfoRequest,
+    EscInfoResponse,
+    ExpandSetCommand,
+    ExpandSetRequest,
+    GetEscIdAnswer,
+    GetEscIdRequest,
+    LedColor,
+    Maintenance0Response,
+    Maintenance1Response,
+    Maintenance2Response,
+    MaintenanceRequest,
+    MajorConfigRequest,
+    MajorConfigResponse,
+    MsgControlAck,
+    MsgControlCommand,
+    MsgControlRequest,
+    MsgExp12,
+    Rotation,
+    SelfTestFault,
+    SelfTestRequest,
+    SelfTestResponse,
+    SetBaudRequest,
+    SetBaudResponse,
+    SetFreqRequest,
+    SetFreqResponse,
+    SetIdRequest,
+    SetIdResponse,
+    SetLedRequest,
+    SetLedResponse,
+    SetRotationRequest,
+    SetRotationResponse,
+    ThrottleSelectRequest,
+    ThrottleSelectResponse,
+    ThrottleSource,
+)
+
+__all__ = [
+    "ANSWER_WINDOW_S",
+    "DEFAULT_TIMEOUT_S",
+    "LED_COLOR_NAMES",
+    "SERVICE_NAMES",
+    "SET_ID_WINDOW_S",
+    "CanTestResult",
+    "CkescClient",
+    "ExpandResult",
+    "MaintenanceResponse",
+    "ReportsResult",
+    "ScannedEsc",
+    "SelfTestResult",
+    "SetIdResult",
+    "led_color_name",
+    "scan_warnings",
+    "value_name",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TIMEOUT_S: Final = 0.5
+"""How long a request waits for its answer."""
+ANSWER_WINDOW_S: Final = 0.064
+"""GET_ESC_ID answers and MSGControl acks come (node_id % 32) x 2 ms late: within 64 ms."""
+SET_ID_WINDOW_S: Final = 120
+"""An ESC takes Set ID and Set Baud only this long after power-up (seed 4.3.2)."""
+COUNTER_MODULUS: Final = 1 << 32
+"""The CANTest counter is a u32 that wraps."""
+_DRAIN_LIMIT: Final = 100_000
+"""At most this many queued frames are dropped before a request (a flooded bus never ends)."""
+
+SERVICE_NAMES: Final[dict[int, str]] = {
+    ckesc.SERVICE_SET_ID: "Set ID",
+    ckesc.SERVICE_SET_BAUD: "Set Baud",
+    ckesc.SERVICE_SET_LED: "Set LED",
+    ckesc.SERVICE_SET_ROTATION: "Set Rotation",
+    ckesc.SERVICE_SET_FREQ: "Set/Get Freq",
+    ckesc.SERVICE_THROTTLE_SELECT: "Throttle Select",
+    ckesc.SERVICE_SELF_TEST: "Self Test",
+    ckesc.SERVICE_EXPAND_SET: "Expand Set",
+    ckesc.SERVICE_ESC_INFO: "ESC Information",
+    ckesc.SERVICE_MAINTENANCE: "Maintenance Information",
+    ckesc.SERVICE_MAJOR_CONFIG: "Get Major Configuration",
+}
+"""The seed's name of each service type the client uses, for messages."""
+
+_SET_ID_HELP: Final = (
+    "an ESC takes Set ID only within 120 s of its power-up and only while no other ESC is "
+    "on the bus: connect this ESC alone, switch its power off and on, and run set-id within "
+    "2 minutes"
+)
+_CONDITIONS: Final[dict[int, str]] = {
+    ckesc.SERVICE_SET_ID: _SET_ID_HELP,
+    ckesc.SERVICE_SET_BAUD: "an ESC takes Set Baud only within 120 s of its power-up: switch "
+    "its power off and on and set the bit rate within 2 minutes",
+    ckesc.SERVICE_SET_LED: "an ESC takes Set LED only while its reports are on (MSGControl resume)",
+    ckesc.SERVICE_SET_ROTATION: "an ESC takes Set Rotation only with the motor stopped and its "
+    "reports on (MSGControl resume)",
+    ckesc.SERVICE_SET_FREQ: "intervals must be 20..500 ms, even",
+    ckesc.SERVICE_THROTTLE_SELECT: "an ESC takes Throttle Select only at zero throttle",
+    ckesc.SERVICE_EXPAND_SET: "an ESC takes Expand Set only with the motor stopped, and may "
+    "not support every part",
+}
+_NO_ANSWER_HELP: Final = (
+    "is the ESC powered and wired (CAN H/L, 120 ohm at both ends), and does the bus run at the "
+    "ESC's bit rate (500 kbit/s from the factory)?"
+)
+
+_R = TypeVar("_R")
+
+LED_COLOR_NAMES: Final[dict[int, str]] = {
+    0: "off",
+    int(LedColor.BLUE): "blue",
+    int(LedColor.GREEN): "green",
+    int(LedColor.GREEN | LedColor.BLUE): "cyan",
+    int(LedColor.RED): "red",
+    int(LedColor.RED | LedColor.BLUE): "magenta",
+    int(LedColor.RED | LedColor.GREEN): "yellow",
+    int(LedColor.RED | LedColor.GREEN | LedColor.BLUE): "white",
+}
+"""Set LED's colour bits by name."""
+
+MaintenanceResponse = Maintenance0Response | Maintenance1Response | Maintenance2Response
+_MAINTENANCE_RESPONSES: Final[dict[int, type[MaintenanceResponse]]] = {
+    0: Maintenance0Response,
+    1: Maintenance1Response,
+    2: Maintenance2Response,
+}
+
+# What Get Major Configuration shows of an Expand Set: command -> part -> (field, value).
+_EXPAND_EFFECTS: Final[dict[int, dict[int, tuple[str, object]]]] = {
+    ExpandSetCommand.DIRECTION: {1: ("direction_reversed", False), 2: ("direction_reversed", True)},
+    ExpandSetCommand.LED: {
+        0: ("led_color", LedColor(0)),
+        1: ("led_color", LedColor.RED),
+        2: ("led_color", LedColor.GREEN),
+        3: ("led_color", LedColor.BLUE),
+    },
+    ExpandSetCommand.THROTTLE_INTERFACE: {
+        2: ("throttle_source", ThrottleSource.PWM_AND_CAN),
+        3: ("throttle_source", ThrottleSource.CAN),
+    },
+}
+_TEMP_RECORDS: Final = 4
+"""READ_TEMP_RECORD: the ESC sends MCU, MOS, capacitor and motor records."""
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+
+
+@dataclass(frozen=True, slots=True)
+class ScannedEsc:
+    """One GET_ESC_ID answer, with the ESC's information (240) and major configuration (242).
+
+    ``problem`` says why ``info`` or ``config`` is missing (no answer, a shared node ID).
+    """
+
+    node_id: int
+    throttle_channel: int
+    info: EscInfoResponse | None = None
+    config: MajorConfigResponse | None = None
+    problem: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SetIdResult:
+    """A Set ID the ESC took: its node ID and channel before and now (saved in its flash)."""
+
+    old_node_id: int
+    old_throttle_channel: int
+    node_id: int
+    throttle_channel: int
+
+
+@dataclass(frozen=True, slots=True)
+class SelfTestResult:
+    """Self Test's answer; for a failed test, fault code 1 from Maintenance option 2 (None when
+    the ESC did not give it)."""
+
+    node_id: int
+    passed: bool
+    fault: SelfTestFault | int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ExpandResult:
+    """An Expand Set sent to ``node_id``.
+
+    ``confirmed``: True when Get Major Configuration shows the new setting, None when nothing
+    on the bus can show it (the motor's beep is the only sign). ``temp_records``: the MSG_EXP12
+    records that answered READ_TEMP_RECORD.
+    """
+
+    node_id: int
+    command: ExpandSetCommand
+    part: int
+    confirmed: bool | None
+    temp_records: tuple[MsgExp12, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ReportsResult:
+    """A MSGControl command and the nodes that acknowledged it."""
+
+    command: MsgControlCommand
+    acked_by: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class CanTestResult:
+    """CANTest reports of one ESC over ``duration_s``, counted against their counter."""
+
+    node_id: int
+    received: int
+    first_count: int
+    last_count: int
+    duration_s: float
+
+    @property
+    def expected(self) -> int:
+        """Reports the counter says were sent from the first received to the last."""
+        return (self.last_count - self.first_count) % COUNTER_MODULUS + 1
+
+    @property
+    def lost(self) -> int:
+        """Reports missing between the first and the last received."""
+        return max(0, self.expected - self.received)
+
+
+def scan_warnings(escs: Collection[ScannedEsc]) -> list[str]:
+    """What a scan shows that needs fixing before flight: shared node IDs, shared throttle
+    channels, ESCs still at the factory node ID (which send no telemetry)."""
+    warnings = []
+    by_node = Counter(esc.node_id for esc in escs)
+    for node, count in sorted(by_node.items()):
+        if count > 1:
+            warnings.append(
+                f"{count} ESCs answered as node {node}: connect them one at a time and give "
+                "each its own node ID (set-id)"
+            )
+    channels: dict[int, set[int]] = {}
+    for esc in escs:
+        channels.setdefault(esc.throttle_channel, set()).add(esc.node_id)
+    for channel, nodes in sorted(channels.items()):
+        if len(nodes) > 1:
+            listed = ", ".join(map(str, sorted(nodes)))
+            warnings.append(
+                f"nodes {listed} all follow throttle channel {channel}: they would spin "
+                "together; give each its own channel (set-id)"
+            )
+    if ckesc.FACTORY_NODE_ID in by_node:
+        warnings.append(
+            f"node {ckesc.FACTORY_NODE_ID} is the factory node ID: such an ESC sends no "
+            "telemetry; give it a node ID of its own (set-id)"
+        )
+    return warnings
+
+
+# --------------------------------------------------------------------------------------------
+# The client
+
+
+def _check_node(node_id: object) -> int:
+    if isinstance(node_id, int) and 1 <= node_id <= ckesc.MAX_NODE_ID:
+        return node_id
+    raise ValueRangeError(
+        f"node = {node_id!r} is not in 1..{ckesc.MAX_NODE_ID} (0 is the host, "
+        f"{ckesc.MAX_NODE_ID + 1} and {ckesc.MAX_NODE_ID + 2} are reserved)"
+    )
+
+
+def _service_label(service_type: int) -> str:
+    return f"{SERVICE_NAMES.get(service_type, 'service')} ({service_type})"
+
+
+def _nodes(nodes: Iterable[int]) -> str:
+    return ", ".join(map(str, sorted(nodes)))
+
+
+class CkescClient:
+    """Requests to CKESC ESCs on ``bus`` from the host, each answer awaited for ``timeout_s``.
+
+    The bus stays the caller's (the client never shuts it down); use one client per bus, so
+    that the transfer IDs count on.
+
+    Raises:
+        ValueError: ``timeout_s`` is not a number of seconds > 0.
+        ValueRangeError: ``host_node`` outside 0..0x7D.
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        *,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        host_node: int = ckesc.HOST_NODE_ID,
+    ) -> None:
+        if not (0 < timeout_s < math.inf):
+            raise ValueError(f"timeout_s={timeout_s!r}: expected a number of seconds > 0")
+        if not (isinstance(host_node, int) and 0 <= host_node <= ckesc.MAX_NODE_ID):
+            raise ValueRangeError(f"host_node = {host_node!r} is not in 0..{ckesc.MAX_NODE_ID}")
+        self.bus = bus
+        self.timeout_s = timeout_s
+        self.host_node = host_node
+        self._tids = ckesc.TransferIds()
+
+    # -- discovery --------------------------------------------------------------------------
+
+    def find_escs(self) -> list[GetEscIdAnswer]:
+        """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice).
+
+        Raises:
+            LinkError: the bus failed.
+        """
+        request = self._broadcast(GetEscIdRequest())
+        self._drain()
+        self._send(request, "GET_ESC_ID")
+        frames = self._collect(
+            ANSWER_WINDOW_S + self.timeout_s,
+            lambda frame: isinstance(frame.message, GetEscIdAnswer),
+        )
+        return [frame.message for frame in frames if isinstance(frame.message, GetEscIdAnswer)]
+
+    def scan(self) -> list[ScannedEsc]:
+        """Every ESC on the bus (GET_ESC_ID) with its information and major configuration,
+        sorted by node ID; an ESC that does not answer those keeps a ``problem``. An empty list
+        when no ESC answered.
+
+        Raises:
+            LinkError: the bus failed.
+        """
+        answers = self.find_escs()
+        count = Counter(answer.node_id for answer in answers)
+        escs = []
+        for answer in sorted(answers, key=lambda a: (a.node_id, a.throttle_channel)):
+            node, channel = answer.node_id, answer.throttle_channel
+            if count[node] > 1:
+                problem = f"{count[node]} ESCs answer as node {node}: not asked for details"
+                escs.append(ScannedEsc(node, channel, problem=problem))
+                continue
+            info: EscInfoResponse | None = None
+            config: MajorConfigResponse | None = None
+            try:
+                info = self.info(node)
+                config = self.major_config(node)
+            except NoAnswerError as exc:
+                escs.append(ScannedEsc(node, channel, info, config, problem=str(exc)))
+                continue
+            escs.append(ScannedEsc(node, channel, info, config))
+        return escs
+
+    # -- the services -----------------------------------------------------------------------
+
+    def request(
+        self, node_id: int, message: CkescMessage, response_type: type[_R] | tuple[type[_R], ...]
+    ) -> _R:
+        """Send the service request ``message`` to ``node_id``; its checked response.
+
+        Raises:
+            ValueRangeError: a value outside the protocol's range (nothing was sent).
+            NoAnswerError: no response within the timeout (WrongNodeError: from another node).
+            LinkError: the bus failed.
+        """
+        msg, transfer_id = self._service_frame(node_id, message)
+        return self._ask(msg, transfer_id, node_id, (node_id,), response_type)
+
+    def set_id(self, node_id: int, throttle_channel: int) -> SetIdResult:
+        """Give the only ESC on the bus ``node_id`` and ``throttle_channel`` (saved in flash).
+
+        Raises:
+            ValueRangeError: node_id outside 1..0x7D or channel outside 1..20 (nothing sent).
+            NoAnswerError: no ESC answers GET_ESC_ID, or the ESC does not answer Set ID.
+            SetupError: several ESCs answer GET_ESC_ID (Set ID is then not sent).
+            RefusedError: the ESC answers with other values (outside its 120 s window).
+            LinkError: the bus failed.
+        """
+        request = SetIdRequest(node_id, throttle_channel)
+        # The values are checked before the scan puts anything on the bus.
+        ckesc.encode(CkescFrame(0, self.host_node, ckesc.FACTORY_NODE_ID, 0, request))
+        answers = self.find_escs()
+        if not answers:
+            window = ANSWER_WINDOW_S + self.timeout_s
+            raise NoAnswerError(
+                f"no ESC answered GET_ESC_ID within {window:.3g} s, so Set ID was not sent; "
+                f"{_NO_ANSWER_HELP} Note: {_SET_ID_HELP}"
+            )
+        if len(answers) > 1:
+            listed = _nodes(answer.node_id for answer in answers)
+            raise SetupError(
+                f"{len(answers)} ESCs answered GET_ESC_ID (nodes {listed}): Set ID reaches "
+                "every ESC on the bus, so it was not sent; connect only the ESC to set up"
+            )
+        old = answers[0]
+        msg, transfer_id = self._service_frame(old.node_id, request)
+        try:
+            response = self._ask(
+                msg, transfer_id, old.node_id, {old.node_id, node_id}, SetIdResponse
+            )
+        except NoAnswerError as exc:
+            raise type(exc)(f"{exc}; {_SET_ID_HELP}") from None
+        got = (response.node_id, response.throttle_channel)
+        if got != (node_id, throttle_channel):
+            self._refused(
+                ckesc.SERVICE_SET_ID,
+                old.node_id,
+                f"node {node_id} channel {throttle_channel}",
+                f"node {got[0]} channel {got[1]}",
+            )
+        return SetIdResult(old.node_id, old.throttle_channel, node_id, throttle_channel)
+
+    def set_baud(self, node_id: int, bitrate: int) -> int:
+        """Set the ESC's CAN bit rate (bit/s, one of :data:`~bridge.escs.ckesc.BAUD_RATES_BPS`),
+        in effect from its next power-up; the bit rate set.
+
+        Raises:
+            ValueRangeError: a bit rate the ESC does not have (nothing sent).
+            RefusedError: the ESC keeps another (outside its 120 s window).
+            NoAnswerError, LinkError: as :meth:`request`.
+        """
+        rates = ckesc.BAUD_RATES_BPS
+        if bitrate not in rates:
+            raise ValueRangeError(
+                f"bitrate = {bitrate!r} is not one of {', '.join(map(str, rates))}"
+            )
+        response = self.request(node_id, SetBaudRequest(rates.index(bitrate)), SetBaudResponse)
+        if response.baud_code != rates.index(bitrate):
+            kept = (
+                f"{rates[response.baud_code]} bit/s"
+                if response.baud_code < len(rates)
+                else f"code {response.baud_code}"
+            )
+            self._refused(ckesc.SERVICE_SET_BAUD, node_id, f"{bitrate} bit/s", kept)
+        return bitrate
+
+    def set_led(
+        self, node_id: int, color: LedColor, blink_hz: int = 0, *, save: bool = False
+    ) -> SetLedResponse:
+        """Set the LED (colour bits, blink 0/1/2/5 Hz), saved as the default with ``save``.
+
+        Raises:
+            ValueRangeError: colour outside 0..7 or another blink rate (nothing sent).
+            RefusedError: the ESC shows another (its reports are paused).
+            NoAnswerError, LinkError: as :meth:`request`.
+        """
+        asked = SetLedRequest(save, color, blink_hz)
+        response = self.request(node_id, asked, SetLedResponse)
+        if (response.color, response.blink_hz) != (asked.color, asked.blink_hz):
+            self._refused(
+                ckesc.SERVICE_SET_LED,
+                node_id,
+                f"{value_name(asked.color)} blink {asked.blink_hz} Hz",
+                f"{value_name(response.color)} blink {response.blink_hz} Hz",
+            )
+        return response
+
+    def rotation(self, node_id: int, rotation: Rotation | None = None) -> Rotation | int:
+        """Set the motor direction (saved in flash), or with None ask for it; the direction.
+
+        Raises:
+            RefusedError: the ESC keeps the other (motor running or reports paused).
+            ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
+        """
+        asked = Rotation.QUERY if rotation is None else rotation
+        response = self.request(node_id, SetRotationRequest(asked), SetRotationResponse)
+        if rotation is not None and response.rotation != rotation:
+            self._refused(
+                ckesc.SERVICE_SET_ROTATION,
+                node_id,
+                value_name(rotation),
+                value_name(response.rotation),
+            )
+        return response.rotation
+
+    def report_intervals(
+        self,
+        node_id: int,
+        msg1_ms: int | None = None,
+        msg2_ms: int | None = None,
+        msg3_ms: int | None = None,
+    ) -> SetFreqResponse:
+        """Read the MSG1/2/3 report intervals, or write those given (20..500 ms, even; the
+        others are read first and kept); the intervals in use.
+
+        Raises:
+            ValueRangeError: an interval outside 20..500 ms or odd (nothing sent).
+            RefusedError: the ESC keeps other intervals.
+            NoAnswerError, LinkError: as :meth:`request`.
+        """
+        given = (msg1_ms, msg2_ms, msg3_ms)
+        read = SetFreqRequest(False, 0, 0, 0)
+        if all(ms is None for ms in given):
+            return self.request(node_id, read, SetFreqResponse)
+        # Check the values given before anything is sent (20 ms stands in for the others).
+        m1, m2, m3 = (20 if ms is None else ms for ms in given)
+        self._service_frame(node_id, SetFreqRequest(True, m1, m2, m3))
+        if any(ms is None for ms in given):
+            now = self.request(node_id, read, SetFreqResponse)
+            m1 = now.msg1_interval_ms if msg1_ms is None else msg1_ms
+            m2 = now.msg2_interval_ms if msg2_ms is None else msg2_ms
+            m3 = now.msg3_interval_ms if msg3_ms is None else msg3_ms
+        response = self.request(node_id, SetFreqRequest(True, m1, m2, m3), SetFreqResponse)
+        got = (response.msg1_interval_ms, response.msg2_interval_ms, response.msg3_interval_ms)
+        if got != (m1, m2, m3):
+            self._refused(
+                ckesc.SERVICE_SET_FREQ,
+                node_id,
+                f"intervals {m1}/{m2}/{m3} ms",
+                "{}/{}/{} ms".format(*got),
+            )
+        return response
+
+    def throttle_source(
+        self, node_id: int, source: ThrottleSource | None = None
+    ) -> ThrottleSource | int:
+        """Set where the ESC takes its throttle from (saved in flash), or with None read it
+        (Get Major Configuration); the source in use.
+
+        Raises:
+            RefusedError: the ESC keeps the other (throttle not zero).
+            ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
+        """
+        if source is None:
+            return self.major_config(node_id).throttle_source
+        response = self.request(node_id, ThrottleSelectRequest(source), ThrottleSelectResponse)
+        if response.source != source:
+            self._refused(
+                ckesc.SERVICE_THROTTLE_SELECT,
+                node_id,
+                value_name(source),
+                value_name(response.source),
+            )
+        return response.source
+
+    def self_test(self, node_id: int) -> SelfTestResult:
+        """The power-on self-test's result; for a failure, the fault code as well.
+
+        Raises:
+            ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
+        """
+        response = self.request(node_id, SelfTestRequest(), SelfTestResponse)
+        if response.passed:
+            return SelfTestResult(node_id, True)
+        try:
+            counters = self.maintenance(node_id, 2)
+        except NoAnswerError:
+            return SelfTestResult(node_id, False)
+        fault = counters.self_test_fault if isinstance(counters, Maintenance2Response) else None
+        return SelfTestResult(node_id, False, fault)
+
+    def info(self, node_id: int) -> EscInfoResponse:
+        """ESC Information (240): cells, current rating, versions, firmware date.
+
+        Raises:
+            ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
+        """
+        return self.request(node_id, EscInfoRequest(), EscInfoResponse)
+
+    def maintenance(self, node_id: int, option: int) -> MaintenanceResponse:
+        """Maintenance Information (241), option 0 (lifetime), 1 (this run) or 2 (counters).
+
+        Raises:
+            ValueRangeError: option outside 0..2 (nothing sent).
+            NoAnswerError, LinkError: as :meth:`request`; an answer for another option counts
+                as none.
+        """
+        message = MaintenanceRequest(option)
+        msg, transfer_id = self._service_frame(node_id, message)
+        expected = _MAINTENANCE_RESPONSES[option]
+        response = self._ask(msg, transfer_id, node_id, (node_id,), expected)
+        return cast(MaintenanceResponse, response)
+
+    def major_config(self, node_id: int) -> MajorConfigResponse:
+        """Get Major Configuration (242): direction, throttle source and channel, LED, intervals.
+
+        Raises:
+            ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
+        """
+        return self.request(node_id, MajorConfigRequest(), MajorConfigResponse)
+
+    def expand(self, node_id: int, command: ExpandSetCommand, part: int) -> ExpandResult:
+        """Send one Expand Set command (no response: the motor beeps) and check what can be
+        checked (see the module docstring).
+
+        Raises:
+            ValueRangeError: an unknown command or a part outside its table (nothing sent).
+            NoAnswerError: the ESC does not answer ESC Information (Expand Set is then not
+                sent), or sends no temperature record for READ_TEMP_RECORD.
+            RefusedError: Get Major Configuration does not show the new setting.
+            LinkError: the bus failed.
+        """
+        msg, _ = self._service_frame(node_id, ExpandSetRequest(command, part))
+        command = ExpandSetCommand(command)
+        try:
+            self.info(node_id)
+        except NoAnswerError as exc:
+            raise type(exc)(f"{exc}; Expand Set (which has no answer) was not sent") from None
+        self._drain()
+        self._send(msg, f"Expand Set {command.name} to node {node_id}")
+        if command == ExpandSetCommand.READ_TEMP_RECORD:
+            records = self._temp_records(node_id)
+            return ExpandResult(node_id, command, part, True, records)
+        effect = _EXPAND_EFFECTS.get(command, {}).get(part)
+        if effect is None:
+            return ExpandResult(node_id, command, part, None)
+        field, value = effect
+        shown = getattr(self.major_config(node_id), field)
+        if shown != value:
+            what = field.replace("_", " ")
+            self._refused(
+                ckesc.SERVICE_EXPAND_SET,
+                node_id,
+                f"{value_name(command)} {part} ({what} {value_name(value)})",
+                f"{what} {value_name(shown)} (Get Major Configuration)",
+            )
+        return ExpandResult(node_id, command, part, True)
+
+    # -- broadcasts -------------------------------------------------------------------------
+
+    def reports(self, command: MsgControlCommand, node_id: int | None = None) -> ReportsResult:
+        """MSGControl to every ESC: PAUSE, RESUME_MSG or RESUME_EXP; the nodes that acked.
+
+        Raises:
+            ValueRangeError: another command, or node_id outside 1..0x7D (nothing sent).
+            NoAnswerError: no ESC acked (with ``node_id``: that one did not).
+            LinkError: the bus failed.
+        """
+        if node_id is not None:
+            _check_node(node_id)
+        request = self._broadcast(MsgControlRequest(command))
+        what = f"MSGControl {MsgControlCommand(command).name}"
+        self._drain()
+        self._send(request, what)
+        window = ANSWER_WINDOW_S + self.timeout_s
+        frames = self._collect(
+            window,
+            lambda frame: (
+                isinstance(frame.message, MsgControlAck)
+                and frame.message.command == MsgControlCommand.ACK
+            ),
+        )
+        acked = tuple(sorted({frame.source_node for frame in frames}))
+        others = f"; acknowledged by node(s) {_nodes(acked)}" if acked else ""
+        if node_id is not None and node_id not in acked:
+            raise NoAnswerError(
+                f"node {node_id} did not acknowledge {what} within {window:g} s{others}; "
+                + _NO_ANSWER_HELP
+            )
+        if not acked:
+            raise NoAnswerError(
+                f"no ESC acknowledged {what} within {window:g} s; {_NO_ANSWER_HELP}"
+            )
+        return ReportsResult(MsgControlCommand(command), acked)
+
+    def can_test(self, duration_s: float, node_id: int | None = None) -> list[CanTestResult]:
+        """Put every ESC in CANTest mode for ``duration_s``, count each one's reports against
+        their counter, then end the mode (always); per node, sorted (only ``node_id`` if given).
+
+        Raises:
+            ValueRangeError: duration not > 0 s, or node_id outside 1..0x7D (nothing sent).
+            NoAnswerError: no reports (with ``node_id``: none from that node).
+            LinkError: the bus failed.
+        """
+        if not (isinstance(duration_s, int | float) and 0 < duration_s < math.inf):
+            raise ValueRangeError(f"duration = {duration_s!r} s is not a time > 0")
+        if node_id is not None:
+            _check_node(node_id)
+        enter = self._broadcast(CanTestRequest(CanTestOption.ENTER))
+        leave = self._broadcast(CanTestRequest(CanTestOption.LEAVE))
+        self._drain()
+        self._send(enter, "CANTest enter")
+        try:
+            frames = self._collect(
+                duration_s, lambda frame: isinstance(frame.message, CanTestReport)
+            )
+        finally:
+            self._send(leave, "CANTest leave")
+        counts: dict[int, list[int]] = {}
+        for frame in frames:
+            if isinstance(frame.message, CanTestReport):
+                counts.setdefault(frame.source_node, []).append(frame.message.count)
+        results = [
+            CanTestResult(node, len(seen), seen[0], seen[-1], duration_s)
+            for node, seen in sorted(counts.items())
+            if node_id is None or node == node_id
+        ]
+        if not results:
+            whose = "no ESC" if node_id is None else f"node {node_id}"
+            heard = f" (reports came from node(s) {_nodes(counts)})" if counts else ""
+            raise NoAnswerError(
+                f"{whose} sent CANTest reports within {duration_s:g} s{heard}; {_NO_ANSWER_HELP}"
+            )
+        return results
+
+    # -- the wire ---------------------------------------------------------------------------
+
+    def _service_frame(self, node_id: int, message: CkescMessage) -> tuple[can.Message, int]:
+        """``message`` to ``node_id``, encoded (checked) with the next transfer ID of its type."""
+        _check_node(node_id)
+        transfer_id = self._tids.next(ckesc.type_id_of(message))
+        frame = CkescFrame(
+            ckesc.default_priority(message), self.host_node, node_id, transfer_id, message
+        )
+        return ckesc.encode(frame), transfer_id
+
+    def _broadcast(self, message: CkescMessage) -> can.Message:
+        """A host broadcast (from node 0, as the codec requires), encoded."""
+        transfer_id = self._tids.next(ckesc.type_id_of(message))
+        frame = CkescFrame(
+            ckesc.default_priority(message), ckesc.HOST_NODE_ID, None, transfer_id, message
+        )
+        return ckesc.encode(frame)
+
+    def _ask(
+        self,
+        msg: can.Message,
+        transfer_id: int,
+        node_id: int,
+        sources: Collection[int],
+        response_type: type[_R] | tuple[type[_R], ...],
+    ) -> _R:
+        """Send the request ``msg`` to ``node_id`` and wait for its response from one of
+        ``sources``."""
+        service_type = msg.arbitration_id >> 16 & 0xFF
+        label = _service_label(service_type)
+        # A response's CAN ID but for its priority and source.
+        wanted = service_type << 16 | self.host_node << 8 | 0x80
+        self._drain()
+        self._send(msg, f"{label} request to node {node_id}")
+        deadline = time.monotonic() + self.timeout_s
+        others: set[int] = set()
+        problems: list[str] = []
+        while (left := deadline - time.monotonic()) > 0:
+            reply = self._recv(left)
+            if reply is None:
+                break
+            can_id = reply.arbitration_id
+            if not reply.is_extended_id or can_id & 0x00FFFF80 != wanted:
+                continue
+            source = can_id & 0x7F
+            try:
+                frame = ckesc.decode(reply)
+            except CodecError as exc:
+                problems.append(f"a malformed answer from node {source} ({exc})")
+                continue
+            if frame is None or frame.transfer_id != transfer_id:
+                continue  # an answer to an earlier request
+            if source not in sources:
+                others.add(source)
+            elif isinstance(frame.message, response_type):
+                return frame.message
+            else:
+                problems.append(
+                    f"node {source} answered with {type(frame.message).__name__} instead"
+                )
+        text = f"node {node_id} did not answer {label} within {self.timeout_s:g} s"
+        if problems:
+            text += "; " + "; ".join(problems)
+        if others:
+            raise WrongNodeError(
+                f"{text}; node(s) {_nodes(others)} answered it instead: a wrong node ID, or "
+                "two ESCs on one ID?"
+            )
+        raise NoAnswerError(f"{text}; {_NO_ANSWER_HELP}")
+
+    def _refused(self, service_type: int, node_id: int, asked: str, kept: str) -> None:
+        condition = _CONDITIONS.get(service_type, "")
+        raise RefusedError(
+            f"node {node_id} refused {_service_label(service_type)}: asked {asked}, in effect "
+            f"{kept}" + (f"; {condition}" if condition else "")
+        )
+
+    def _temp_records(self, node_id: int) -> tuple[MsgExp12, ...]:
+        frames = self._collect(
+            self.timeout_s,
+            lambda frame: isinstance(frame.message, MsgExp12) and frame.source_node == node_id,
+            until=_TEMP_RECORDS,
+        )
+        records = tuple(frame.message for frame in frames if isinstance(frame.message, MsgExp12))
+        if not records:
+            raise NoAnswerError(
+                f"node {node_id} sent no temperature record (MSG_EXP12) within "
+                f"{self.timeout_s:g} s of Expand Set READ_TEMP_RECORD"
+            )
+        return records
+
+    def _collect(
+        self,
+        window_s: float,
+        accept: Callable[[CkescFrame], bool],
+        until: int | None = None,
+    ) -> list[CkescFrame]:
+        """The ESC frames (source node not 0) ``accept`` takes, read for ``window_s`` (or
+        until there are ``until`` of them)."""
+        deadline = time.monotonic() + window_s
+        out: list[CkescFrame] = []
+        while (left := deadline - time.monotonic()) > 0:
+            msg = self._recv(left)
+            if msg is None:
+                break
+            try:
+                frame = ckesc.decode(msg)
+            except CodecError:
+                continue
+            if frame is not None and frame.source_node != ckesc.HOST_NODE_ID and accept(frame):
+                out.append(frame)
+                if until is not None and len(out) >= until:
+                    break
+        return out
+
+    def _drain(self) -> None:
+        for _ in range(_DRAIN_LIMIT):
+            if self._recv(0.0) is None:
+                return
+
+    def _send(self, msg: can.Message, what: str) -> None:
+        try:
+            self.bus.send(msg, timeout=self.timeout_s)
+        except (can.CanError, OSError) as exc:
+            raise LinkError(f"cannot send {what} on the CAN bus: {exc}") from exc
+        log.debug("sent %s: %08X %s", what, msg.arbitration_id, msg.data.hex(" "))
+
+    def _recv(self, timeout_s: float) -> can.Message | None:
+        try:
+            msg: can.Message | None = self.bus.recv(timeout_s)
+        except (can.CanError, OSError) as exc:
+            raise LinkError(f"cannot read the CAN bus: {exc}") from exc
+        return msg
+
+
+def led_color_name(color: LedColor | int) -> str:
+    """ "red", "cyan", "off", ...: the name of an RGB combination (a number if not 0..7)."""
+    return LED_COLOR_NAMES.get(int(color), str(int(color)))
+
+
+def value_name(value: object) -> str:
+    """A value as ``esc-bridge esc`` spells it: "reversed", "pwm-can", "phase-a-high", "cyan",
+    "yes"; anything else as it prints."""
+    if isinstance(value, LedColor):
+        return led_color_name(value)
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if value == ThrottleSource.PWM_AND_CAN and isinstance(value, ThrottleSource):
+        return "pwm-can"
+    name = getattr(value, "name", None)
+    return name.lower().replace("_", "-") if isinstance(name, str) else str(value)
