@@ -31,7 +31,7 @@ from bridge.busload import check_bus_load
 from bridge.can_io import SHAREABLE_INTERFACES, check_interface
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import LinkError
-from bridge.fanout import Fanout, make_table
+from bridge.fanout import Fanout
 from bridge.mailbox import CommandMailbox, LoopState, LoopStats
 from bridge.mavlink_in import MavlinkLink
 from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
@@ -46,6 +46,7 @@ from bridge.motor_test import (
 )
 from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
 from bridge.record import Recording
+from bridge.telemetry.state import EscTable
 from bridge.zenoh_out import session_config
 
 log = logging.getLogger(__name__)
@@ -377,7 +378,7 @@ class Supervisor:
         )
         self.fanout = Fanout(
             config,
-            make_table(config),
+            EscTable.for_config(config),
             self.link,
             health=self.health,
             actuators_input=self.actuators_input,

@@ -19,7 +19,7 @@ from bridge.can_io import enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.mavlink_in import MavlinkLink
 from bridge.mavlink_out import MavlinkTelemetry
-from bridge.telemetry.state import EscTable, TelemetryLimits
+from bridge.telemetry.state import EscTable
 from bridge.zenoh_out import TelemetrySources, ZenohOut
 
 log = logging.getLogger(__name__)
@@ -29,23 +29,6 @@ log = logging.getLogger(__name__)
 RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
 
 JsonSource = Callable[[], dict[str, Any] | None]
-
-
-def make_table(config: BridgeConfig) -> EscTable:
-    """The ESC state for ``config`` (its ESC lists already sized by ``with_esc_count``)."""
-    telemetry, escs = config.telemetry, config.escs
-    return EscTable(
-        escs.ids,
-        pole_pairs=telemetry.pole_pairs,
-        channels=escs.ckesc_channels if config.output.protocol == "ckesc" else None,
-        timeout_ms=telemetry.timeout_ms,
-        limits=TelemetryLimits(
-            max_temp_c=telemetry.max_temp_c,
-            max_current_a=telemetry.max_current_a,
-            max_rpm=telemetry.max_rpm,
-            error_burst=telemetry.error_burst,
-        ),
-    )
 
 
 class Fanout:

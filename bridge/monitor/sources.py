@@ -23,7 +23,7 @@ from bridge.can_io import check_interface, open_bus
 from bridge.config import BridgeConfig, ZenohConfig
 from bridge.errors import ConfigError, LinkError
 from bridge.monitor.view import VehicleState
-from bridge.telemetry.state import EscTable, TelemetryLimits
+from bridge.telemetry.state import EscTable
 
 if TYPE_CHECKING:
     import can
@@ -264,20 +264,7 @@ class CanSource:
 
     def __init__(self, config: BridgeConfig, bus: can.BusABC) -> None:
         """Use :meth:`open`, which opens the bus and starts reading."""
-        telemetry, escs = config.telemetry, config.escs
-        channels = escs.ckesc_channels if config.output.protocol == "ckesc" else ()
-        self.table = EscTable(
-            escs.ids,
-            pole_pairs=telemetry.pole_pairs,
-            channels=channels or None,
-            timeout_ms=telemetry.timeout_ms,
-            limits=TelemetryLimits(
-                max_temp_c=telemetry.max_temp_c,
-                max_current_a=telemetry.max_current_a,
-                max_rpm=telemetry.max_rpm,
-                error_burst=telemetry.error_burst,
-            ),
-        )
+        self.table = EscTable.for_config(config)
         self._bus: can.BusABC | None = bus
         self.reader = CanReader(bus, self.table, config.output.protocol)
         self._name = f"{config.can.interface}:{config.can.channel}"
