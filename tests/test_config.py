@@ -10,7 +10,8 @@ import pytest
 
 from bridge import daemon
 from bridge.busload import bus_load, frame_bits
-from bridge.cli import _parser, run_config
+from bridge.cli import build_parser as _parser
+from bridge.cli.run import run_config
 from bridge.config import build_config, documented_keys, read_config_file, with_esc_count
 from bridge.errors import ConfigError
 

@@ -275,6 +275,9 @@ def test_ctrl_c_ends_cleanly_with_a_final_table(can_port: int) -> None:
     lines = Lines(proc)
     try:
         lines.wait_for("udp_multicast:", 15)  # the first table: the monitor is running
+        deadline = time.monotonic() + 5
+        while not tables(lines.text()) and time.monotonic() < deadline:
+            time.sleep(0.02)  # the whole first table, not just its title, before Ctrl-C
         proc.send_signal(signal.SIGINT)
     finally:
         err = finish(proc)

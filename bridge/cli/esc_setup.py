@@ -1,10 +1,11 @@
 """``esc-bridge esc COMMAND``: set up CKESC ESCs from the command line (arguments and output);
-``esc spin``, the motor test for both protocols, is in :mod:`bridge.cli`.
+``esc spin``, the motor test for both protocols, is in :mod:`bridge.cli.spin`.
 
 One ``add_esc_<command>(esc_commands)`` per command adds its parser to the ``esc`` group that
-:mod:`bridge.cli` creates; each parser has the bus flags of :func:`add_bus_arguments` and a
+:mod:`bridge.cli.esc` creates; each parser has the bus flags of :func:`add_bus_arguments` and a
 handler that runs :class:`~bridge.esc_setup.CkescClient` (imported lazily) and prints the
-result, as text or with ``--json`` as one JSON object. Like bridge/cli.py this module prints.
+result, as text or with ``--json`` as one JSON object. Like the rest of :mod:`bridge.cli` this
+module prints.
 
 Exit status: 0 done; 1 no answer, a refusal, a failed self-test, lost CANTest frames or a bus
 error (one line on stderr); 2 bad arguments, including values outside the protocol's range,
@@ -23,6 +24,14 @@ import textwrap
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Final, TypeAlias, TypeVar
 
+from bridge.cli._common import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    add_can_flags,
+    positive_seconds,
+    with_flag_names,
+)
 from bridge.config import CanConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError, NoAnswerError, ValueRangeError, WrongNodeError
 from bridge.escs.ckesc import (
@@ -41,10 +50,6 @@ if TYPE_CHECKING:
     """What ``add_subparsers`` returns: the ``esc`` group's commands."""
 
 _T = TypeVar("_T")
-
-EXIT_OK: Final = 0
-EXIT_FAILED: Final = 1
-EXIT_INTERRUPTED: Final = 130
 
 # Flags of the bus -> (section, key) of the configuration they override.
 BUS_FLAGS: Final[dict[str, tuple[str, str]]] = {
@@ -134,26 +139,12 @@ _FIELD_FLAGS: Final = (
 
 def add_bus_arguments(parser: argparse.ArgumentParser, *, json_output: bool = True) -> None:
     """The bus flags (as ``run``'s), ``--timeout`` and ``--json``."""
-    from bridge.cli import _can_option, _seconds
-
     bus = parser.add_argument_group("CAN bus (as for `esc-bridge run`)")
     bus.add_argument("--config", metavar="FILE", help="a bridge configuration: its [can] section")
-    bus.add_argument("--can-interface", metavar="NAME", help="python-can interface (socketcan)")
-    bus.add_argument("--can-channel", metavar="CHANNEL", help="python-can channel (can0)")
-    bus.add_argument(
-        "--can-option",
-        action="append",
-        default=[],
-        type=_can_option,
-        metavar="KEY=VALUE",
-        help="extra python-can interface argument, repeatable (e.g. port=43113)",
-    )
-    bus.add_argument(
-        "--bitrate", type=int, metavar="BPS", help="CAN bit rate, bit/s (CKESC factory: 500000)"
-    )
+    add_can_flags(bus, bitrate_help="CAN bit rate, bit/s (CKESC factory: 500000)")
     parser.add_argument(
         "--timeout",
-        type=_seconds,
+        type=positive_seconds,
         default=0.5,
         metavar="S",
         help="how long to wait for each answer (default 0.5 s)",
@@ -226,10 +217,7 @@ def bus_config(args: argparse.Namespace) -> tuple[CanConfig, int]:
     try:
         config = build_config(overrides, "command line")  # the flags alone name themselves
     except ConfigError as exc:
-        text = str(exc)
-        for flag, (section, key) in BUS_FLAGS.items():
-            text = text.replace(f"[{section}] {key}:", f"{flag}:")
-        raise ConfigError(text.replace("[can] options:", "--can-option:")) from None
+        raise with_flag_names(exc, BUS_FLAGS) from None
     if args.config is not None:
         raw = read_config_file(args.config)
         if "options" in overrides.get("can", {}):
@@ -831,12 +819,14 @@ def add_esc_can_test(esc_commands: EscCommands) -> None:
         "(every 2 ms) against their counter for --seconds, report the lost frames, and end "
         "the mode (also on Ctrl-C). Exit status 1 if a frame was lost.",
     )
-    from bridge.cli import _seconds
-
     add_bus_arguments(parser)
     _node_argument(parser, required=False, text="only this ESC (default: every ESC that reports)")
     parser.add_argument(
-        "--seconds", type=_seconds, default=2.0, metavar="S", help="test for S seconds (default 2)"
+        "--seconds",
+        type=positive_seconds,
+        default=2.0,
+        metavar="S",
+        help="test for S seconds (default 2)",
     )
     parser.set_defaults(handler=_can_test)
 

@@ -1,0 +1,173 @@
+"""``esc-bridge run``: the bridge itself, its flags and its configuration."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from bridge.cli._common import EXIT_OK, can_option, with_flag_names
+from bridge.config import BridgeConfig, build_config, merge, read_config_file
+from bridge.errors import ConfigError
+
+
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    run = commands.add_parser(
+        "run",
+        help="run the bridge: MAVLink motor outputs to CAN ESC commands, safe by default",
+        description="Run the bridge. Without --config, the defaults plus these flags make a "
+        "working bridge (passthrough mixer, one ESC per output, IDs 1..N).",
+    )
+    run.add_argument("--config", metavar="FILE", help="TOML configuration (see config/README.md)")
+    _add_run_overrides(run)
+    run.add_argument(
+        "--log-level",
+        choices=("debug", "info", "warning", "error"),
+        default="info",
+        help="logging threshold (default info)",
+    )
+    run.add_argument(
+        "--record",
+        metavar="DIR",
+        help="record every CAN frame sent and received (candump .log) and the MAVLink traffic "
+        "(.tlog) into DIR",
+    )
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="validate the configuration, print the plan and bus load, and exit",
+    )
+    run.set_defaults(handler=_run)
+
+
+# --flag -> (section, key, type) for the settings people change most.
+RUN_OVERRIDES: dict[str, tuple[str, str, Callable[[str], Any], str]] = {
+    "--mavlink": ("mavlink", "url", str, "autopilot connection (pymavlink URL)"),
+    "--source": ("mavlink", "source", str, "MAVLink message with the motor outputs"),
+    "--can-interface": ("can", "interface", str, "python-can interface (default socketcan)"),
+    "--can-channel": ("can", "channel", str, "python-can channel (default can0)"),
+    "--bitrate": ("can", "bitrate", int, "CAN bit rate, bit/s"),
+    "--protocol": ("output", "protocol", str, "ESC protocol: ckesc or ft"),
+    "--rate": ("output", "rate_hz", int, "command rate per ESC, Hz"),
+    "--latency": ("output", "latency", str, "fixed or immediate"),
+    "--mixer": ("mixer", "name", str, "bundled mixer name or mixer .toml path"),
+    "--vehicle": ("zenoh", "vehicle", str, "vehicle name in the Zenoh keys (default host name)"),
+}
+
+
+RUN_METAVARS = {
+    "--mavlink": "URL",
+    "--source": "MESSAGE",
+    "--can-interface": "NAME",
+    "--can-channel": "CHANNEL",
+    "--bitrate": "BPS",
+    "--protocol": "ckesc|ft",
+    "--rate": "HZ",
+    "--latency": "fixed|immediate",
+    "--mixer": "NAME|FILE",
+    "--vehicle": "NAME",
+}
+
+
+def _add_run_overrides(parser: argparse.ArgumentParser) -> None:
+    for flag, (section, key, kind, text) in RUN_OVERRIDES.items():
+        parser.add_argument(
+            flag,
+            type=kind,
+            default=None,
+            metavar=RUN_METAVARS.get(flag, "VALUE"),
+            help=f"{text} ([{section}] {key})",
+        )
+    parser.add_argument(
+        "--can-option",
+        action="append",
+        default=[],
+        type=can_option,
+        metavar="KEY=VALUE",
+        help="extra python-can interface argument, repeatable (e.g. port=43113)",
+    )
+    parser.add_argument(
+        "--zenoh-connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, repeatable (e.g. tcp/192.168.1.2:7447) "
+        "([zenoh] connect)",
+    )
+    parser.add_argument(
+        "--zenoh-listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to listen on, repeatable (e.g. tcp/0.0.0.0:7447) ([zenoh] listen)",
+    )
+    parser.add_argument(
+        "--no-zenoh-scouting",
+        dest="zenoh_scouting",
+        action="store_false",
+        default=None,
+        help="do not look for Zenoh peers by multicast ([zenoh] multicast_scouting = false)",
+    )
+    parser.add_argument(
+        "--no-zenoh",
+        dest="zenoh_enabled",
+        action="store_false",
+        default=None,
+        help="do not publish over Zenoh ([zenoh] enabled = false)",
+    )
+
+
+def run_config(args: argparse.Namespace) -> BridgeConfig:
+    """The configuration for ``run``: defaults < --config file < command-line flags.
+
+    Raises:
+        ConfigError: a flag or the file is invalid.
+    """
+    overrides: dict[str, dict[str, Any]] = {}
+    for flag, (section, key, _, _) in RUN_OVERRIDES.items():
+        value = getattr(args, flag.lstrip("-").replace("-", "_"))
+        if value is not None:
+            overrides.setdefault(section, {})[key] = value
+    if args.can_option:
+        overrides.setdefault("can", {})["options"] = dict(args.can_option)
+    zenoh_flags = {
+        "connect": args.zenoh_connect,
+        "listen": args.zenoh_listen,
+        "multicast_scouting": args.zenoh_scouting,
+        "enabled": args.zenoh_enabled,
+    }
+    for key, value in zenoh_flags.items():
+        if value is not None:
+            overrides.setdefault("zenoh", {})[key] = value
+    # The flags alone first, so that a bad flag is reported as the flag it is.
+    try:
+        build_config(overrides, "command line")
+    except ConfigError as exc:
+        flags = {flag: (section, key) for flag, (section, key, _, _) in RUN_OVERRIDES.items()}
+        flags |= {"--zenoh-connect": ("zenoh", "connect"), "--zenoh-listen": ("zenoh", "listen")}
+        raise with_flag_names(exc, flags) from None
+    if args.config is None:
+        return build_config(overrides, "command line")
+    raw = read_config_file(args.config)
+    if "options" in overrides.get("can", {}):
+        file_options = raw.get("can", {}).get("options", {})
+        if isinstance(file_options, dict):
+            overrides["can"]["options"] = file_options | overrides["can"]["options"]
+    return build_config(merge(raw, overrides), args.config)
+
+
+def _run(args: argparse.Namespace) -> int:
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s esc-bridge %(message)s"
+    )
+    # pymavlink logs every new stream and replayed timestamp at INFO; the link counts those.
+    logging.getLogger("pymavlink").setLevel(logging.WARNING)
+    from bridge import daemon  # pymavlink and the loop are only loaded for `run`
+
+    config = run_config(args)
+    if args.check:
+        checked = daemon.plan(config)
+        print(f"{config.source}: OK")
+        print(f"  mixer {checked.mixer.name}: {len(checked.mixer.outputs)} outputs")
+        print(f"  {checked.load_text}")
+        return EXIT_OK
+    return daemon.run(config, record_dir=args.record)
