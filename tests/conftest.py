@@ -26,6 +26,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
+from bridge.mavlink import load_dialect
+
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = ROOT.parent / "shared" / "data"
 MULTICAST_GROUP = "239.74.163.2"
@@ -146,6 +148,64 @@ class Autopilot:
         if self._thread is not None:
             self._thread.join(1.0)
         self.conn.close()
+
+
+class MavlinkReceiver:
+    """Decodes, with the project's dialect, what the daemon sends back to a pymavlink link."""
+
+    def __init__(self, conn: Any) -> None:
+        self._conn = conn
+        self._parser = load_dialect().MAVLink(None)
+        self._parser.robust_parsing = True
+        self.messages: list[tuple[float, Any]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="receiver", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._conn.recv()
+            except OSError:
+                return
+            if not data:
+                time.sleep(0.002)
+                continue
+            now = time.monotonic()
+            for msg in self._parser.parse_buffer(data) or []:
+                with self._lock:
+                    self.messages.append((now, msg))
+
+    def wait_for(
+        self,
+        kind: str,
+        predicate: Callable[[Any], bool],
+        timeout_s: float = 5.0,
+        after: float = 0,
+        first: bool = False,
+    ) -> Any:
+        """The newest (or with ``first``, the earliest) ``kind`` message received after
+        ``after`` that matches ``predicate``, waiting up to ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                found = [
+                    m
+                    for t, m in self.messages
+                    if t >= after and m.get_type() == kind and predicate(m)
+                ]
+            if found:
+                return found[0] if first else found[-1]
+            time.sleep(0.02)
+        with self._lock:
+            seen = sorted({m.get_type() for _, m in self.messages})
+        raise AssertionError(f"no matching {kind} within {timeout_s} s; saw {seen}")
+
+    def close(self) -> None:
+        """Stop reading (the connection stays open: whoever opened it closes it)."""
+        self._stop.set()
+        self._thread.join(1.0)
 
 
 class Daemon:

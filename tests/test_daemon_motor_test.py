@@ -6,7 +6,6 @@ from __future__ import annotations
 import itertools
 import json
 import socket
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -15,7 +14,7 @@ from typing import Any
 import can
 import pytest
 import zenoh
-from conftest import Autopilot, Daemon, Observer, free_port
+from conftest import Autopilot, Daemon, MavlinkReceiver, Observer, free_port
 from pymavlink import mavutil
 
 from bridge.escs import ckesc, ft
@@ -29,7 +28,7 @@ REJECTED, UNSUPPORTED = dialect.MAV_RESULT_TEMPORARILY_REJECTED, dialect.MAV_RES
 SAFE = (0, 0, 0, 0)
 
 
-class Gcs:
+class Gcs(MavlinkReceiver):
     """A ground station on one of the bridge's extra outputs: sends DO_MOTOR_TEST, records
     everything the bridge sends (decoded with the project's dialect)."""
 
@@ -38,37 +37,17 @@ class Gcs:
         self.conn: Any = mavutil.mavlink_connection(
             f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190
         )
-        self._parser: Any = dialect.MAVLink(None)
-        self._parser.robust_parsing = True
-        self.messages: list[tuple[float, Any]] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="gcs", daemon=True)
-        self._thread.start()
+        super().__init__(self.conn)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.conn.recv()
-            except OSError:
-                return
-            if not data:
-                time.sleep(0.002)
-                continue
-            now = time.monotonic()
-            for msg in self._parser.parse_buffer(data) or []:
-                with self._lock:
-                    self.messages.append((now, msg))
-
-    def wait_for(self, kind: str, predicate: Callable[[Any], bool], after: float = 0.0) -> Any:
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < deadline:
-            with self._lock:
-                for t, msg in self.messages:
-                    if t >= after and msg.get_type() == kind and predicate(msg):
-                        return msg
-            time.sleep(0.01)
-        raise AssertionError(f"no matching {kind} within {START_TIMEOUT_S} s")
+    def wait_for(
+        self,
+        kind: str,
+        predicate: Callable[[Any], bool],
+        timeout_s: float = START_TIMEOUT_S,
+        after: float = 0.0,
+        first: bool = True,
+    ) -> Any:
+        return super().wait_for(kind, predicate, timeout_s, after, first)
 
     def motor_test(
         self,
@@ -95,7 +74,7 @@ class Gcs:
             0,
         )
         ack = self.wait_for(
-            "COMMAND_ACK", lambda m: m.command == dialect.MAV_CMD_DO_MOTOR_TEST, sent
+            "COMMAND_ACK", lambda m: m.command == dialect.MAV_CMD_DO_MOTOR_TEST, after=sent
         )
         return int(ack.result)
 
@@ -104,8 +83,7 @@ class Gcs:
             return [m.text for _, m in self.messages if m.get_type() == "STATUSTEXT"]
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(1.0)
+        super().close()
         self.conn.close()
 
 
