@@ -723,12 +723,16 @@ def add_esc_info(esc_commands: EscCommands) -> None:
 
 
 def _info(args: argparse.Namespace) -> int:
-    info = _run(args, lambda client: client.info(args.node))
+    return _print_record(args, "ESC information", _run(args, lambda c: c.info(args.node)))
+
+
+def _print_record(args: argparse.Namespace, title: str, record: Any) -> int:
+    """One answer record of ``args.node``: as JSON, or titled lines of fields."""
     if args.json:
-        _print_json({"node_id": args.node, **jsonable(info)})
+        _print_json({"node_id": args.node, **jsonable(record)})
     else:
-        print(f"node {args.node}: ESC information")
-        print("\n".join(record_lines(info)))
+        print(f"node {args.node}: {title}")
+        print("\n".join(record_lines(record)))
     return EXIT_OK
 
 
@@ -774,12 +778,7 @@ def add_esc_config(esc_commands: EscCommands) -> None:
 
 def _config(args: argparse.Namespace) -> int:
     config = _run(args, lambda client: client.major_config(args.node))
-    if args.json:
-        _print_json({"node_id": args.node, **jsonable(config)})
-    else:
-        print(f"node {args.node}: major configuration")
-        print("\n".join(record_lines(config)))
-    return EXIT_OK
+    return _print_record(args, "major configuration", config)
 
 
 # --------------------------------------------------------------------------------------------
