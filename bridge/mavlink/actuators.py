@@ -4,9 +4,9 @@ real-time loop: a :class:`~bridge.mavlink.frames.Frame` in, an :class:`ActuatorI
 Pure: no pymavlink, I/O, clock or logging. Each payload is read with one precompiled
 :class:`struct.Struct` in MAVLink wire order (fields sorted by type size, largest first, in
 definition order among equals; extension fields last, in definition order), over the payload
-the scanner zero-extended, so a truncated MAVLink 2 payload and a MAVLink 1 frame without the
-extensions read the missing fields as 0. tests/mavlink/test_actuators.py checks every layout
-against pymavlink's dialect.
+zero-extended to the message's full length, so a truncated MAVLink 2 payload and a MAVLink 1
+frame without the extensions read the missing fields as 0. tests/mavlink/test_actuators.py
+checks every layout against pymavlink's dialect.
 
 The input vector has :data:`INPUT_VECTOR_LEN` floats in the order of
 ``bridge.mixer.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means absent. The
@@ -122,12 +122,21 @@ class ActuatorInput:
     """HIL_ACTUATOR_CONTROLS: its ``mode`` has MAV_MODE_FLAG_SAFETY_ARMED; None for others."""
 
 
+def _full(payload: bytes, size: int) -> bytes:
+    """``payload`` zero-extended to ``size``. The scanner does that for every id it knows; this
+    covers a scanner built without these ids, which passes a truncated payload as sent."""
+    return payload if len(payload) >= size else payload.ljust(size, b"\0")
+
+
 def heartbeat_armed(frame: Frame) -> bool | None:
     """For a HEARTBEAT: its ``base_mode`` has MAV_MODE_FLAG_SAFETY_ARMED. None for any other
     message. The sender is not checked (the caller obeys only the autopilot)."""
     if frame.msg_id != HEARTBEAT_ID:
         return None
-    return bool(frame.payload[_HEARTBEAT_BASE_MODE_AT] & MAV_MODE_FLAG_SAFETY_ARMED)
+    payload = frame.payload
+    if len(payload) <= _HEARTBEAT_BASE_MODE_AT:
+        return False  # truncated to before base_mode: it was 0
+    return bool(payload[_HEARTBEAT_BASE_MODE_AT] & MAV_MODE_FLAG_SAFETY_ARMED)
 
 
 class ActuatorDecoder(ABC):
@@ -172,7 +181,7 @@ class ServoOutputRawDecoder(ActuatorDecoder):
     def decode(self, frame: Frame) -> ActuatorInput | None:
         if frame.msg_id != SERVO_OUTPUT_RAW_ID:
             return None
-        fields = _SERVO.unpack_from(frame.payload)
+        fields = _SERVO.unpack_from(_full(frame.payload, _SERVO.size))
         port: int = fields[_SERVO_PORT_AT]
         if port > 1:
             return None  # ports 2.. would be channels 33..: more than the mixer takes
@@ -206,7 +215,7 @@ class ActuatorOutputStatusDecoder(ActuatorDecoder):
     def decode(self, frame: Frame) -> ActuatorInput | None:
         if frame.msg_id != ACTUATOR_OUTPUT_STATUS_ID:
             return None
-        fields = _OUTPUT_STATUS.unpack_from(frame.payload)
+        fields = _OUTPUT_STATUS.unpack_from(_full(frame.payload, _OUTPUT_STATUS.size))
         active: int = fields[1]
         values = [_NAN] * INPUT_VECTOR_LEN
         slot = 0
@@ -230,7 +239,7 @@ class HilActuatorControlsDecoder(ActuatorDecoder):
     def decode(self, frame: Frame) -> ActuatorInput | None:
         if frame.msg_id != HIL_ACTUATOR_CONTROLS_ID:
             return None
-        fields = _HIL.unpack_from(frame.payload)
+        fields = _HIL.unpack_from(_full(frame.payload, _HIL.size))
         values = [v if -_INF < v < _INF else _NAN for v in fields[2:_HIL_MODE_AT]]
         values += _ABSENT_AFTER_HIL
         time_us: int = fields[0]
@@ -254,9 +263,9 @@ class ActuatorControlTargetDecoder(ActuatorDecoder):
     def decode(self, frame: Frame) -> ActuatorInput | None:
         msg_id = frame.msg_id
         if msg_id == ACTUATOR_CONTROL_TARGET_ID:
-            fields = _CONTROL_TARGET.unpack_from(frame.payload)
+            fields = _CONTROL_TARGET.unpack_from(_full(frame.payload, _CONTROL_TARGET.size))
         elif msg_id == SET_ACTUATOR_CONTROL_TARGET_ID:
-            fields = _SET_CONTROL_TARGET.unpack_from(frame.payload)
+            fields = _SET_CONTROL_TARGET.unpack_from(_full(frame.payload, _SET_CONTROL_TARGET.size))
             system, component = fields[10], fields[11]
             if (system and system != self._system_id) or (
                 component and component != self._component_id

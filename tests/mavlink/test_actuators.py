@@ -309,3 +309,42 @@ def test_decoders_refuse_other_messages_and_name_theirs() -> None:
 def test_an_unknown_source_is_a_config_error_naming_the_choices() -> None:
     with pytest.raises(ConfigError, match=r"'servo_raw'.*servo_output_raw, actuator_output_status"):
         decoder_for("servo_raw", *OURS)
+
+
+def test_truncated_payloads_of_ids_the_scanner_does_not_know_decode_the_same() -> None:
+    # A scanner that knows none of these ids passes their payloads as sent: truncated.
+    bare = FrameScanner({}, {})
+    controls = [0.5, -0.25, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    cases = [
+        ("servo_output_raw", DIALECT.MAVLink_servo_output_raw_message(9, 0, 1500, *[0] * 15)),
+        (
+            "actuator_output_status",
+            DIALECT.MAVLink_actuator_output_status_message(9, 1, [0.0] * 32),
+        ),
+        (
+            "hil_actuator_controls",
+            DIALECT.MAVLink_hil_actuator_controls_message(9, [0.0] * 16, 0, 0),
+        ),
+        (
+            "actuator_control_target",
+            DIALECT.MAVLink_actuator_control_target_message(9, 0, controls),
+        ),
+        (
+            "actuator_control_target",
+            DIALECT.MAVLink_set_actuator_control_target_message(9, 0, 0, 0, controls),
+        ),
+    ]
+    mav: Any = DIALECT.MAVLink(None, srcSystem=1, srcComponent=1)
+    for source, msg in cases:
+        raw = msg.pack(mav)
+        (short,) = bare.feed(raw)
+        (full,) = FrameScanner.for_dialect(DIALECT).feed(raw)
+        assert len(short.payload) < len(full.payload), msg.get_type()
+        expected = decode(source, full)
+        got = decode(source, short)
+        assert got.time_us == expected.time_us == 9
+        assert_vector(got.values, dict(zip(INPUT_NAMES, expected.values, strict=True)))
+    idle = DIALECT.MAVLink_heartbeat_message(0, 0, 0, 0, 0, 0).pack(mav)
+    (beat,) = bare.feed(idle)
+    assert len(beat.payload) == 1
+    assert heartbeat_armed(beat) is False
