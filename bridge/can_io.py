@@ -66,7 +66,10 @@ _COVER_SEARCH_BUDGET = 20_000
 
 _SO_MEMINFO: Final = 55  # asm-generic/socket.h (x86, arm, arm64); Python has no constant
 _SK_MEMINFO_DROPS: Final = 8  # index of sk_drops in SO_MEMINFO's u32 array (Linux >= 4.6)
-_CAN_RAW_ERR_FILTER: Final = 2  # linux/can/raw.h
+_AF_CAN: Final = 29  # linux/socket.h; socket.AF_CAN is missing where Python was built without it
+_SOL_CAN_RAW: Final = 101  # linux/can.h: SOL_CAN_BASE + CAN_RAW
+_CAN_RAW_FILTER: Final = 1  # linux/can/raw.h
+_CAN_RAW_ERR_FILTER: Final = 2
 _IP_MULTICAST_ALL: Final = 49  # linux/in.h
 _IPV6_MULTICAST_ALL: Final = 29  # linux/in6.h (Linux >= 4.20)
 _PROC_NET_UDP: Final[dict[int, str]] = {
@@ -294,7 +297,7 @@ def apply_filters(bus: can.BusABC, filters: Sequence[CanFilter]) -> None:
 @contextlib.contextmanager
 def _bus_socket(bus: can.BusABC) -> Iterator[socket.socket | None]:
     """A duplicate of the bus's socket (options set on it apply to the bus's own), or None
-    when the interface has no socket."""
+    when the interface has no descriptor."""
     try:
         fd = bus.fileno()
     except (NotImplementedError, AttributeError, OSError, ValueError):
@@ -310,31 +313,39 @@ def _bus_socket(bus: can.BusABC) -> Iterator[socket.socket | None]:
         yield None
         return
     with sock:
-        try:
-            sock.getsockopt(socket.SOL_SOCKET, socket.SO_DOMAIN)
-        except OSError:  # a descriptor but not a socket (a serial adapter's tty)
-            yield None
-            return
         yield sock
+
+
+def _kind(sock: socket.socket) -> tuple[int, int] | None:
+    """The socket's real (family, type), or None: not a socket (a serial adapter's tty), or
+    not Linux (SO_DOMAIN)."""
+    so_domain = getattr(socket, "SO_DOMAIN", None)
+    if so_domain is None:
+        return None
+    try:
+        family = sock.getsockopt(socket.SOL_SOCKET, so_domain)
+        kind = sock.getsockopt(socket.SOL_SOCKET, socket.SO_TYPE)
+    except OSError:
+        return None
+    return family, kind
 
 
 def _stop_receiving(bus: can.BusABC, channel: str) -> bool:
     """Make the kernel queue nothing for ``bus`` (see :func:`open_bus`, "none"); False when
     the interface has no socket this knows how to silence."""
     with _bus_socket(bus) as sock:
-        if sock is None:
+        kind = None if sock is None else _kind(sock)
+        if sock is None or kind is None:
             return False
-        family = sock.getsockopt(socket.SOL_SOCKET, socket.SO_DOMAIN)
-        kind = sock.getsockopt(socket.SOL_SOCKET, socket.SO_TYPE)
         try:
-            if family == socket.AF_CAN:
+            if kind[0] == _AF_CAN:
                 # No filter registers no receiver: the CAN core never even clones a frame for
                 # this socket. Error frames have a receiver of their own: switch it off too.
-                sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
-                sock.setsockopt(socket.SOL_CAN_RAW, _CAN_RAW_ERR_FILTER, 0)
+                sock.setsockopt(_SOL_CAN_RAW, _CAN_RAW_FILTER, b"")
+                sock.setsockopt(_SOL_CAN_RAW, _CAN_RAW_ERR_FILTER, 0)
                 return True
-            if family in _PROC_NET_UDP and kind == socket.SOCK_DGRAM:
-                _leave_group(sock, family, channel)
+            if kind[0] in _PROC_NET_UDP and kind[1] == socket.SOCK_DGRAM:
+                _leave_group(sock, kind[0], channel)
                 return True
         except OSError as exc:
             log.warning("cannot make the %s handle transmit-only: %s", channel, exc)
@@ -375,12 +386,12 @@ def receive_drops(bus: can.BusABC) -> int | None:
     - Other interfaces: None.
     """
     with _bus_socket(bus) as sock:
-        if sock is None:
+        kind = None if sock is None else _kind(sock)
+        if sock is None or kind is None:
             return None
-        family = sock.getsockopt(socket.SOL_SOCKET, socket.SO_DOMAIN)
-        if family in _PROC_NET_UDP:
-            return _udp_drops(os.fstat(sock.fileno()).st_ino, _PROC_NET_UDP[family])
-        if family == socket.AF_CAN:
+        if kind[0] in _PROC_NET_UDP:
+            return _udp_drops(os.fstat(sock.fileno()).st_ino, _PROC_NET_UDP[kind[0]])
+        if kind[0] == _AF_CAN:
             return socket_drops(sock)
         return None
 

@@ -596,10 +596,12 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
         assert reader is not None
         # The motors settle within a second (time constant 80 ms); then the flood.
         assert wait_until(
-            lambda: sim.elapsed_s > 1.0
-            and all(
-                s.online and s.rpm and abs(s.rpm - e.motor.rpm) < 0.01 * abs(e.motor.rpm)
-                for s, e in zip(table.snapshot(time.monotonic_ns()), escs, strict=True)
+            lambda: (
+                sim.elapsed_s > 1.0
+                and all(
+                    s.online and s.rpm and abs(s.rpm - e.motor.rpm) < 0.01 * abs(e.motor.rpm)
+                    for s, e in zip(table.snapshot(time.monotonic_ns()), escs, strict=True)
+                )
             ),
             5.0,
         ), table.snapshot(time.monotonic_ns())
