@@ -233,7 +233,8 @@ def open_bus(
       nothing. udp_multicast and virtual have no kernel filter: python-can drops the other
       frames in ``recv`` after reading each, so a flood still costs the reader its reads (but
       not its decoding). Other interfaces filter in hardware or in python-can, as each can.
-      An empty ``filters`` passes nothing: the handle is opened as with ``"none"``.
+      An empty ``filters`` passes nothing: the handle is opened as with ``"none"`` (so on an
+      interface where that does nothing, it receives every frame).
     - ``"none"``: a transmit-only handle, for a process that never reads (the output loop),
       whose socket would otherwise fill and make the kernel copy and then discard every
       frame. socketcan: an empty CAN_RAW_FILTER and no error frames, set on the socket
