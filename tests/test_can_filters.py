@@ -530,11 +530,13 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
 FLOOD_S = 3.0
 SAMPLE_PERIOD_S = 0.02
 DUTIES = (0.2, 0.4, 0.6, 0.8)
-# How old an ESC's newest telemetry may get under the flood. FT sends every 10 ms; on
-# udp_multicast the reader still reads every junk datagram (python-can filters in software),
-# cannot keep up with a Python sender's full rate, and the kernel drops frames, telemetry among
-# them. Well inside the 500 ms online timeout: the ESC never looks like it went offline.
-MAX_AGE_MS = 300.0
+# How old an ESC's newest telemetry may typically be under the flood (the median over the
+# samples). FT sends every 10 ms; on udp_multicast the reader still reads every junk datagram
+# (python-can filters in software), cannot keep up with a Python sender's full rate, and the
+# kernel drops frames, telemetry among them. Measured here: median 7..19 ms, worst 50..160 ms
+# on a loaded machine; the worst case is the machine's (a starved process), so it is only
+# held to the 500 ms online timeout, sample by sample.
+MEDIAN_AGE_MS = 50.0
 
 
 class _NoInput:
@@ -645,7 +647,7 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
         own_bus = fanout._own_bus
         assert own_bus is not None and stats.kernel_drops == receive_drops(own_bus)
         assert fanout.counters()["can_rx"]["kernel_drops"] == stats.kernel_drops
-        assert ages[-1] <= MAX_AGE_MS
+        assert ages[len(ages) // 2] <= MEDIAN_AGE_MS
         # The transmit-only handle queued nothing through it all; a plain one overflowed.
         assert silent_row == (0, 0)
         assert plain_row[1] > 0
