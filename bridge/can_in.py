@@ -1,10 +1,13 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
-Everything on the bus is read, including the bridge's own commands (on socketcan and
-udp_multicast another handle of the same bus sees them): the recorder, when there is one,
-gets every frame; :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs.
-A malformed frame is counted against the ESC its ID names and dropped; nothing that arrives
-stops the reader.
+What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
+attached, everything on the bus, including the bridge's own commands (on socketcan and
+udp_multicast another handle of the same bus sees them), since the recording wants every
+frame; otherwise only our ESCs' telemetry, plus the bridge's commands while a feature reads
+them back. :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs either
+way. A malformed frame is counted against the ESC its ID names and dropped; nothing that
+arrives stops the reader. Frames the kernel dropped because the reader fell behind are
+counted too (:attr:`ReaderStats.kernel_drops`).
 """
 
 from __future__ import annotations
@@ -12,11 +15,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 
 import can
+from can.typechecking import CanFilter
 
+from bridge.can_io import receive_drops, telemetry_filters
 from bridge.errors import CodecError, LinkError
 from bridge.escs import Protocol, ckesc, decode, ft
 from bridge.telemetry.state import EscTable
@@ -27,6 +32,8 @@ RECV_TIMEOUT_S = 0.1  # how often the reader notices close()
 JOIN_TIMEOUT_S = 2.0
 # GET_ESC_ID: each ESC answers after (node_id % 32) x 2 ms, so 62 ms covers every node.
 GET_ESC_ID_WINDOW_S = 0.1
+# The drop count costs a system call (and a /proc read on udp_multicast): at most this often.
+DROPS_SAMPLE_PERIOD_NS = 1_000_000_000
 
 Recorder = Callable[[can.Message], None]
 
@@ -36,13 +43,34 @@ class ReaderStats:
     """Counters of the CAN reader, updated live."""
 
     frames: int = 0
-    """Every frame read."""
+    """Every frame read (that the handle's filters let through)."""
     telemetry: int = 0
     """Frames that updated an ESC's state."""
     malformed: int = 0
     """Frames in our protocol's space that failed to decode (CRC, DLC, tail byte, ...)."""
     read_errors: int = 0
     """Failures of the bus itself while reading."""
+    kernel_drops: int | None = None
+    """Frames the kernel dropped because the reader's receive queue was full, since its handle
+    was opened (the sum over handles, if a shared one was reopened). Sampled once a second,
+    so up to a second behind; None while the interface has not told (it may never: see
+    :func:`bridge.can_io.receive_drops`)."""
+
+
+def reader_filters(
+    protocol: Protocol, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
+) -> list[CanFilter] | None:
+    """The filters for the reader's own bus handle: None (every frame) when ``recording``,
+    since the recording wants every frame; else our ESCs' telemetry, plus the bridge's own
+    commands with ``read_back_commands`` (the ESC state's ``command`` for the actuators/output
+    key). See :func:`bridge.can_io.telemetry_filters`.
+
+    Raises:
+        ValueRangeError: an ESC ID the protocol cannot have.
+    """
+    if recording:
+        return None
+    return telemetry_filters(protocol, esc_ids, read_back_commands)
 
 
 def node_of(msg: can.Message, protocol: Protocol) -> int | None:
@@ -60,6 +88,15 @@ class CanReader:
     ``bus`` is the bus, or a function returning the bus to read now (None: none at the moment),
     for an interface only one handle can open: the output loop's thread then owns the handle,
     reopens it when it fails, and the reader reads whichever handle is current.
+
+    The reader reads whatever its handle lets through; whoever opens the handle chooses that
+    (:func:`reader_filters`, used by :class:`~bridge.fanout.Fanout`). On socketcan the kernel
+    filters, so a flood of other traffic costs the reader nothing. On interfaces without
+    kernel filtering (udp_multicast, virtual) python-can filters in software inside
+    ``recv``: the frames the filters refuse never reach the recorder, the decoders or
+    :attr:`stats`, but the reader still reads each one, so a flood still costs it CPU, and
+    when it cannot keep up the kernel drops frames (telemetry among them) and counts them in
+    :attr:`ReaderStats.kernel_drops`.
     """
 
     def __init__(
@@ -74,6 +111,11 @@ class CanReader:
         self._protocol = protocol
         self._recorder = recorder
         self.stats = ReaderStats()
+        # Drops of handles the reader read before the current one (a reopened shared handle
+        # starts counting from 0 again), and the current handle's last count.
+        self._drops_bus: can.BusABC | None = None
+        self._drops_before = 0
+        self._drops_current = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="can-reader", daemon=True)
 
@@ -88,6 +130,7 @@ class CanReader:
 
     def _run(self) -> None:
         failures = 0
+        next_sample_ns = 0
         while not self._stop.is_set():
             bus = self._bus_source()
             if bus is None:
@@ -103,8 +146,22 @@ class CanReader:
                 self._stop.wait(RECV_TIMEOUT_S)  # a bus that is gone must not spin the CPU
                 continue
             failures = 0
+            now_ns = time.monotonic_ns()
             if msg is not None:
-                self.handle(msg, time.monotonic_ns())
+                self.handle(msg, now_ns)
+            if now_ns >= next_sample_ns:
+                next_sample_ns = now_ns + DROPS_SAMPLE_PERIOD_NS
+                self._sample_drops(bus)
+
+    def _sample_drops(self, bus: can.BusABC) -> None:
+        if bus is not self._drops_bus:
+            # A new handle (the shared one was reopened): keep what the old one counted.
+            self._drops_before += self._drops_current
+            self._drops_bus, self._drops_current = bus, 0
+        drops = receive_drops(bus)
+        if drops is not None:
+            self._drops_current = drops
+            self.stats.kernel_drops = self._drops_before + drops
 
     def handle(self, msg: can.Message, now_ns: int) -> None:
         """Record, decode and apply one frame (the reader thread calls this for each)."""

@@ -1,15 +1,33 @@
-"""The CAN edge: opening python-can buses from the config, and telling passing send failures
-from a bus that is gone. The only module besides the codecs that imports python-can's buses."""
+"""The CAN edge: opening python-can buses from the config, choosing what each handle receives,
+counting what the kernel dropped for it, and telling passing send failures from a bus that is
+gone. The only module besides the codecs that imports python-can's buses.
+
+What a handle receives (``open_bus(receive=...)``) matters under load: every frame a socket
+is subscribed to costs the kernel a copy and a queue slot, and costs the process a wake-up, a
+read and a decode, whether anyone wants the frame or not. So the output process, which only
+sends, opens a transmit-only handle (``"none"``), and the telemetry reader asks the kernel for
+its ESCs' telemetry only (``"telemetry"`` with :func:`telemetry_filters`).
+"""
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import logging
+import os
 import socket
+import struct
+from collections.abc import Collection, Iterable, Iterator, Sequence
+from typing import Final, Literal
 
 import can
+from can.typechecking import CanFilter
 
 from bridge.config import CanConfig
-from bridge.errors import ConfigError, LinkError
+from bridge.errors import ConfigError, LinkError, ValueRangeError
+from bridge.escs import Protocol, ckesc, ft
+
+log = logging.getLogger(__name__)
 
 # Interfaces that several processes can open at once on one machine, so the output loop can
 # have a process (and a bus handle) of its own.
@@ -18,6 +36,48 @@ SHAREABLE_INTERFACES = frozenset({"socketcan", "udp_multicast"})
 # Send errors that mean "try again next tick" rather than "the bus is gone": the transmit
 # queue is full (the ESCs are not acknowledging, or the bus is saturated).
 TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
+
+Receive = Literal["all", "telemetry", "none"]
+"""What a bus handle receives: every frame, the frames its filters pass, or nothing."""
+
+# -- which IDs are telemetry (PROTOCOLS.md §1.1, §1.3, §2.1, §2.4) ----------------------------
+
+CKESC_TELEMETRY_TYPES: Final = frozenset(range(ckesc.TYPE_MSG1, ckesc.TYPE_MSG_EXP12 + 1))
+"""MSG1..MSG_EXP12 (20050..20064): what :class:`~bridge.telemetry.state.EscTable` takes from an
+ESC. CANTest reports, MSGControl acks, GET_ESC_ID answers and service responses are not."""
+CKESC_COMMAND_TYPES: Final = frozenset(
+    {ckesc.TYPE_RAW_COMMAND_14B, ckesc.TYPE_RAW_COMMAND_12B, ckesc.TYPE_RAW_COMMAND_10B}
+)
+"""RawCommand_14b/12b/10b, sent by the host (node 0): the commands the ESC state reads back."""
+FT_TELEMETRY_COMMANDS: Final = frozenset(ft.Telemetry)
+FT_COMMANDS: Final = frozenset(ft.Command)
+
+_CKESC_TYPE_BITS = 16  # bits 23..8 of a message frame's ID
+_CKESC_NODE_BITS = 7  # bits 6..0
+_CKESC_SERVICE_FLAG = 0x80  # bit 7: 0 for a message (broadcast) frame
+_FT_FIELD_BITS = 8  # ESC ID in bits 15..8, command in bits 7..0
+_FT_ZERO_BITS = 0x1FFF_0000  # bits 28..16 are zero in every FT ID
+
+# Exact search for the fewest blocks gives up after this many steps and keeps the best cover
+# found so far (still exact, maybe one block longer); no ID set of a real vehicle comes near.
+_COVER_SEARCH_BUDGET = 20_000
+
+# -- the socket options python-can does not set for us (Linux) --------------------------------
+
+_SO_MEMINFO: Final = 55  # asm-generic/socket.h (x86, arm, arm64); Python has no constant
+_SK_MEMINFO_DROPS: Final = 8  # index of sk_drops in SO_MEMINFO's u32 array (Linux >= 4.6)
+_AF_CAN: Final = 29  # linux/socket.h; socket.AF_CAN is missing where Python was built without it
+_SOL_CAN_RAW: Final = 101  # linux/can.h: SOL_CAN_BASE + CAN_RAW
+_CAN_RAW_FILTER: Final = 1  # linux/can/raw.h
+_CAN_RAW_ERR_FILTER: Final = 2
+_IP_MULTICAST_ALL: Final = 49  # linux/in.h
+_IPV6_MULTICAST_ALL: Final = 29  # linux/in6.h (Linux >= 4.20)
+_PROC_NET_UDP: Final[dict[int, str]] = {
+    socket.AF_INET: "/proc/net/udp",
+    socket.AF_INET6: "/proc/net/udp6",
+}
+_UDP_INODE_COLUMN = 9
+_UDP_DROPS_COLUMN = 12
 
 
 def check_interface(config: CanConfig, source: str) -> None:
@@ -34,18 +94,174 @@ def check_interface(config: CanConfig, source: str) -> None:
         )
 
 
-def open_bus(config: CanConfig, bitrate: int) -> can.BusABC:
-    """Open the configured bus.
+def telemetry_filters(
+    protocol: Protocol, esc_ids: Collection[int], read_back_commands: bool
+) -> list[CanFilter]:
+    """python-can ``can_filters`` that pass exactly the telemetry frames of ``protocol`` from
+    the ESCs ``esc_ids`` (CKESC node IDs, FT ESC IDs), and, with ``read_back_commands``, the
+    command frames the ESC state reads back (CKESC RawCommand from node 0; FT commands to
+    those ESCs). Nothing else: no 11-bit frame, no other node's or ESC's frames, no service
+    traffic.
+
+    The kernel (socketcan) tries every filter on every frame, so they are as few as the ID
+    layout allows: each ID field (CKESC message type and source node; FT command and ESC ID)
+    is split into the fewest aligned blocks (value, mask) that cover exactly its values, and
+    one filter is made per pair of blocks. A quad with ESC IDs 1..4 needs 12 (CKESC) or 6
+    (FT). The CKESC priority bits (28..24) match anything, as the decoder ignores them.
+    Remote (RTR) frames with a matching ID also pass (python-can's filters cannot say
+    otherwise); the decoder refuses them and counts them malformed.
+
+    An empty list (no ESCs and no read-back) means "no frame": python-can would take it as
+    "every frame", so :func:`open_bus` turns it into a transmit-only handle.
+
+    Raises:
+        ValueRangeError: an ESC ID outside 1..125 (CKESC: 0 is the host) or 0..255 (FT).
+    """
+    ids = frozenset(esc_ids)
+    if protocol == "ckesc":
+        _check_ids(ids, range(1, ckesc.MAX_NODE_ID + 1), "CKESC node")
+        filters = _ckesc_filters(CKESC_TELEMETRY_TYPES, ids)
+        if read_back_commands:
+            filters += _ckesc_filters(CKESC_COMMAND_TYPES, frozenset({ckesc.HOST_NODE_ID}))
+        return filters
+    _check_ids(ids, range(ft.ESC_ID_MIN, ft.ESC_ID_MAX + 1), "FT ESC")
+    commands = FT_TELEMETRY_COMMANDS | (FT_COMMANDS if read_back_commands else frozenset())
+    return [
+        {
+            "can_id": esc_id << 8 | command,
+            "can_mask": _FT_ZERO_BITS | esc_mask << 8 | command_mask,
+            "extended": True,
+        }
+        for esc_id, esc_mask in _blocks(ids, _FT_FIELD_BITS)
+        for command, command_mask in _blocks(commands, _FT_FIELD_BITS)
+    ]
+
+
+def _check_ids(ids: Iterable[int], allowed: range, what: str) -> None:
+    bad = sorted(i for i in ids if i not in allowed)
+    if bad:
+        raise ValueRangeError(f"{what} IDs {bad} are not in {allowed.start}..{allowed.stop - 1}")
+
+
+def _ckesc_filters(types: frozenset[int], nodes: frozenset[int]) -> list[CanFilter]:
+    return [
+        {
+            "can_id": type_id << 8 | node,
+            "can_mask": type_mask << 8 | _CKESC_SERVICE_FLAG | node_mask,
+            "extended": True,
+        }
+        for node, node_mask in _blocks(nodes, _CKESC_NODE_BITS)
+        for type_id, type_mask in _blocks(types, _CKESC_TYPE_BITS)
+    ]
+
+
+def _blocks(values: frozenset[int], width: int) -> list[tuple[int, int]]:
+    """The fewest (value, mask) blocks over ``width`` bits whose union is exactly ``values``.
+
+    A block is the set of numbers that equal ``value`` on the bits set in ``mask``. The
+    candidates are the largest blocks inside ``values`` (merged pairwise, Quine-McCluskey);
+    a depth-first search with the greedy answer as its first bound picks the fewest.
+    """
+    full = (1 << width) - 1
+    level = {(v, full) for v in values}
+    largest: set[tuple[int, int]] = set()
+    while level:
+        merged: set[tuple[int, int]] = set()
+        used: set[tuple[int, int]] = set()
+        for value, mask in level:
+            for bit in (1 << i for i in range(width)):
+                partner = (value | bit, mask)
+                if mask & bit and not value & bit and partner in level:
+                    merged.add((value, mask & ~bit))
+                    used.update(((value, mask), partner))
+        largest |= level - used
+        level = merged
+    members = {block: _members(*block, width) for block in largest}
+    covering = {v: [b for b in largest if v in members[b]] for v in values}
+
+    best: list[tuple[int, int]] = []
+    left = set(values)
+    while left:  # greedy: the block that covers most of what is left
+        block = max(sorted(largest), key=lambda b: len(members[b] & left))
+        best.append(block)
+        left -= members[block]
+    steps = 0
+
+    def search(left: frozenset[int], chosen: list[tuple[int, int]]) -> None:
+        nonlocal best, steps
+        steps += 1
+        if not left:
+            best = list(chosen)
+            return
+        if len(chosen) + 1 >= len(best) or steps > _COVER_SEARCH_BUDGET:
+            return
+        # Branch on the value the fewest blocks can cover: one of them must be chosen.
+        value = min(left, key=lambda v: (len(covering[v]), v))
+        for block in sorted(covering[value], key=lambda b: (-len(members[b] & left), b)):
+            chosen.append(block)
+            search(left - members[block], chosen)
+            chosen.pop()
+
+    search(frozenset(values), [])
+    return sorted(best)
+
+
+def _members(value: int, mask: int, width: int) -> frozenset[int]:
+    free = [1 << i for i in range(width) if not mask >> i & 1]
+    result = []
+    for combination in range(1 << len(free)):
+        member = value
+        for i, bit in enumerate(free):
+            if combination >> i & 1:
+                member |= bit
+        result.append(member)
+    return frozenset(result)
+
+
+def open_bus(
+    config: CanConfig,
+    bitrate: int,
+    *,
+    receive: Receive = "all",
+    filters: Sequence[CanFilter] | None = None,
+) -> can.BusABC:
+    """Open the configured bus; ``receive`` says what the handle gets from it.
+
+    - ``"all"``: every frame (the recorder, the monitor, ESC set-up, the simulator).
+    - ``"telemetry"``: only frames that match one of ``filters`` (:func:`telemetry_filters`).
+      socketcan filters in the kernel (CAN_RAW_FILTER): other frames cost the process
+      nothing. udp_multicast and virtual have no kernel filter: python-can drops the other
+      frames in ``recv`` after reading each, so a flood still costs the reader its reads (but
+      not its decoding). Other interfaces filter in hardware or in python-can, as each can.
+      An empty ``filters`` passes nothing: the handle is opened as with ``"none"`` (so on an
+      interface where that does nothing, it receives every frame).
+    - ``"none"``: a transmit-only handle, for a process that never reads (the output loop),
+      whose socket would otherwise fill and make the kernel copy and then discard every
+      frame. socketcan: an empty CAN_RAW_FILTER and no error frames, set on the socket
+      directly, since python-can takes an empty filter list for "every frame".
+      udp_multicast: the socket leaves the multicast group and clears IP_MULTICAST_ALL
+      (IPV6_MULTICAST_ALL), so no datagram is queued for it (measured under a flood:
+      shutdown(SHUT_RD) fails with ENOTCONN and changes nothing, leaving the group alone
+      changes nothing since IP_MULTICAST_ALL still delivers every group joined on the host,
+      and a minimal SO_RCVBUF still queues one datagram and counts every other as dropped).
+      Other interfaces: nothing is done; frames queue for the handle as before (a ``virtual``
+      handle's queue grows without bound if it is never read).
 
     Raises:
         ConfigError: the interface is not one python-can knows.
         LinkError: the bus could not be opened (no such device, no permission, ...).
+        ValueError: ``filters`` without ``receive="telemetry"``, or that without ``filters``.
     """
-    kwargs = dict(config.options or {})
-    try:
-        return can.Bus(
-            interface=config.interface, channel=config.channel, bitrate=bitrate, **kwargs
+    if (receive == "telemetry") != (filters is not None):
+        raise ValueError(
+            f"open_bus(receive={receive!r}, filters={filters!r}): filters go with "
+            "receive='telemetry', and only there"
         )
+    kwargs = dict(config.options or {})
+    if filters:
+        kwargs["can_filters"] = list(filters)
+    try:
+        bus = can.Bus(interface=config.interface, channel=config.channel, bitrate=bitrate, **kwargs)
     except can.CanInterfaceNotImplementedError as exc:
         known = ", ".join(sorted(can.VALID_INTERFACES))
         raise ConfigError(
@@ -60,6 +276,151 @@ def open_bus(config: CanConfig, bitrate: int) -> can.BusABC:
                 else ""
             )
         ) from exc
+    silence = receive == "none" or (receive == "telemetry" and not filters)
+    if silence and not _stop_receiving(bus, config.channel):
+        log.debug("%s: this interface has no transmit-only handle", config.interface)
+    return bus
+
+
+def apply_filters(bus: can.BusABC, filters: Sequence[CanFilter]) -> None:
+    """Let only frames matching one of ``filters`` through ``bus.recv`` from now on (in the
+    kernel on socketcan; see :func:`open_bus`). Frames already queued are still read.
+
+    Raises:
+        ValueError: ``filters`` is empty (python-can would pass every frame; open a handle
+            with ``receive="none"`` for none).
+    """
+    if not filters:
+        raise ValueError("apply_filters: no filters; python-can would take that as every frame")
+    bus.set_filters(list(filters))
+
+
+@contextlib.contextmanager
+def _bus_socket(bus: can.BusABC) -> Iterator[socket.socket | None]:
+    """A duplicate of the bus's socket (options set on it apply to the bus's own), or None
+    when the interface has no descriptor."""
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, AttributeError, OSError, ValueError):
+        fd = -1
+    if not isinstance(fd, int) or fd < 0:
+        yield None
+        return
+    try:
+        # fromfd duplicates the descriptor: closing the duplicate leaves the bus's own open.
+        # The family given here does not matter for socket-level options.
+        sock = socket.fromfd(fd, socket.AF_INET, socket.SOCK_DGRAM)
+    except OSError:
+        yield None
+        return
+    with sock:
+        yield sock
+
+
+def _kind(sock: socket.socket) -> tuple[int, int] | None:
+    """The socket's real (family, type), or None: not a socket (a serial adapter's tty), or
+    not Linux (SO_DOMAIN)."""
+    so_domain = getattr(socket, "SO_DOMAIN", None)
+    if so_domain is None:
+        return None
+    try:
+        family = sock.getsockopt(socket.SOL_SOCKET, so_domain)
+        kind = sock.getsockopt(socket.SOL_SOCKET, socket.SO_TYPE)
+    except OSError:
+        return None
+    return family, kind
+
+
+def _stop_receiving(bus: can.BusABC, channel: str) -> bool:
+    """Make the kernel queue nothing for ``bus`` (see :func:`open_bus`, "none"); False when
+    the interface has no socket this knows how to silence."""
+    with _bus_socket(bus) as sock:
+        kind = None if sock is None else _kind(sock)
+        if sock is None or kind is None:
+            return False
+        try:
+            if kind[0] == _AF_CAN:
+                # No filter registers no receiver: the CAN core never even clones a frame for
+                # this socket. Error frames have a receiver of their own: switch it off too.
+                sock.setsockopt(_SOL_CAN_RAW, _CAN_RAW_FILTER, b"")
+                sock.setsockopt(_SOL_CAN_RAW, _CAN_RAW_ERR_FILTER, 0)
+                return True
+            if kind[0] in _PROC_NET_UDP and kind[1] == socket.SOCK_DGRAM:
+                _leave_group(sock, kind[0], channel)
+                return True
+        except OSError as exc:
+            log.warning("cannot make the %s handle transmit-only: %s", channel, exc)
+        return False
+
+
+def _leave_group(sock: socket.socket, family: int, group: str) -> None:
+    """Leave the multicast group python-can's udp_multicast joined (on any interface), and
+    stop receiving the groups other sockets on this host joined."""
+    address = socket.inet_pton(family, group)
+    if family == socket.AF_INET:
+        mreq = address + struct.pack("=I", socket.INADDR_ANY)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, mreq)
+        sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
+    else:
+        mreq = address + struct.pack("@I", 0)
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_LEAVE_GROUP, mreq)
+        sock.setsockopt(socket.IPPROTO_IPV6, _IPV6_MULTICAST_ALL, 0)
+
+
+def receive_drops(bus: can.BusABC) -> int | None:
+    """Frames the kernel dropped for this handle since it was opened, because its receive
+    queue was full (a reader held off for longer than its socket buffer lasts); None when the
+    interface does not tell.
+
+    A system call and, for udp_multicast, a read of a /proc table: call it now and then (the
+    CAN reader does once a second), never per frame.
+
+    - udp_multicast: the ``drops`` column of the socket's row in /proc/net/udp or
+      /proc/net/udp6, found by the socket's inode.
+    - socketcan: the socket's ``sk_drops`` counter through getsockopt(SO_MEMINFO) (Linux
+      >= 4.6). It is the counter SO_RXQ_OVFL reports, but SO_RXQ_OVFL delivers it as
+      ancillary data on each recvmsg, and python-can's socketcan ``capture_message`` asks
+      for room for exactly one control message (the timestamp): reading it would mean
+      replacing python-can's receive path. SO_MEMINFO reads the same count at any time.
+      Untested here (this machine's kernel has no CAN); the same call on a UDP socket is
+      tested against /proc/net/udp.
+    - Other interfaces: None.
+    """
+    with _bus_socket(bus) as sock:
+        kind = None if sock is None else _kind(sock)
+        if sock is None or kind is None:
+            return None
+        if kind[0] in _PROC_NET_UDP:
+            return _udp_drops(os.fstat(sock.fileno()).st_ino, _PROC_NET_UDP[kind[0]])
+        if kind[0] == _AF_CAN:
+            return socket_drops(sock)
+        return None
+
+
+def socket_drops(sock: socket.socket) -> int | None:
+    """The kernel's drop count of any socket (getsockopt SO_MEMINFO), or None if the kernel
+    does not give it."""
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO, 4 * (_SK_MEMINFO_DROPS + 1))
+    except OSError:
+        return None
+    if len(raw) < 4 * (_SK_MEMINFO_DROPS + 1):
+        return None
+    drops: int = struct.unpack_from("=I", raw, 4 * _SK_MEMINFO_DROPS)[0]
+    return drops
+
+
+def _udp_drops(inode: int, path: str) -> int | None:
+    try:
+        with open(path, encoding="ascii") as table:
+            next(table, None)  # the header
+            for line in table:
+                fields = line.split()
+                if len(fields) > _UDP_DROPS_COLUMN and int(fields[_UDP_INODE_COLUMN]) == inode:
+                    return int(fields[_UDP_DROPS_COLUMN])
+    except (OSError, ValueError):
+        return None
+    return None
 
 
 def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int) -> int | None:
@@ -72,21 +433,15 @@ def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int) -> int | None:
     Returns:
         The buffer size the kernel granted, or None when the interface has no socket.
     """
-    try:
-        fd = bus.fileno()
-    except (NotImplementedError, AttributeError, OSError, ValueError):
-        return None
-    if not isinstance(fd, int) or fd < 0:
-        return None
-    try:
-        # fromfd duplicates the descriptor: the option applies to the bus's socket, and closing
-        # the duplicate leaves the bus's own descriptor open.
-        with socket.fromfd(fd, socket.AF_INET, socket.SOCK_DGRAM) as sock:
+    with _bus_socket(bus) as sock:
+        if sock is None:
+            return None
+        try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size_bytes)
             granted: int = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
             return granted
-    except OSError:
-        return None
+        except OSError:
+            return None
 
 
 def is_transient(exc: BaseException) -> bool:

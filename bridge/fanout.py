@@ -13,10 +13,12 @@ from collections.abc import Callable
 from typing import Any
 
 import can
+from can.typechecking import CanFilter
 
-from bridge.can_in import CanReader, Recorder, learn_ckesc_ids
-from bridge.can_io import enlarge_receive_buffer, open_bus
+from bridge.can_in import CanReader, Recorder, learn_ckesc_ids, reader_filters
+from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
+from bridge.errors import ValueRangeError
 from bridge.mavlink_in import MavlinkLink
 from bridge.mavlink_out import MavlinkTelemetry
 from bridge.telemetry.state import EscTable
@@ -45,12 +47,21 @@ class Fanout:
         actuators_output: JsonSource,
         shared_bus: Callable[[], can.BusABC | None] | None = None,
         recorder: Recorder | None = None,
+        read_back_commands: bool = True,
     ) -> None:
-        """``shared_bus``: read the output loop's handle instead of opening one of our own."""
+        """``shared_bus``: read the output loop's handle instead of opening one of our own.
+
+        Our own handle receives only our ESCs' telemetry (:func:`~bridge.can_in.reader_filters`),
+        unless ``recorder`` is given (the recording wants every frame); with
+        ``read_back_commands`` (the default) it receives the bridge's own commands too, which the
+        ESC state reads back for the actuators/output key. A shared handle belongs to the
+        output loop and is read as it was opened.
+        """
         self._config = config
         self.table = table
         self._shared_bus = shared_bus
         self._recorder = recorder
+        self._read_back_commands = read_back_commands
         self._own_bus: can.BusABC | None = None
         self.reader: CanReader | None = None
         self.mavlink = MavlinkTelemetry(config.mavlink, link, table)
@@ -66,21 +77,50 @@ class Fanout:
             LinkError: the bus cannot be opened, or the ESCs' answers are inconsistent.
         """
         config = self._config
+        learn = config.telemetry.learn_ids and config.output.protocol == "ckesc"
+        filters = self._filters()
         if self._shared_bus is None:
-            self._own_bus = open_bus(config.can, config.bitrate)
+            if filters is None or learn:
+                # GET_ESC_ID answers are not telemetry: learn on an unfiltered handle, then
+                # filter by the node IDs learnt.
+                self._own_bus = open_bus(config.can, config.bitrate)
+            else:
+                self._own_bus = open_bus(
+                    config.can, config.bitrate, receive="telemetry", filters=filters
+                )
             granted = enlarge_receive_buffer(self._own_bus, RECEIVE_BUFFER_BYTES)
             if granted is not None:
                 log.debug("CAN reader receive buffer: %d bytes", granted)
             bus: Any = self._own_bus
         else:
             bus = self._shared_bus
-        if config.telemetry.learn_ids and config.output.protocol == "ckesc":
+        if learn:
             self._learn_ids(self._own_bus if self._shared_bus is None else self._shared_bus())
+            filters = self._filters()
+            if self._own_bus is not None and filters:
+                apply_filters(self._own_bus, filters)
+        if self._own_bus is not None:
+            log.debug(
+                "CAN reader receives %s",
+                "every frame" if filters is None else f"what {len(filters)} filters pass",
+            )
         self.reader = CanReader(bus, self.table, config.output.protocol, self._recorder)
         self.reader.start()
         self.mavlink.start()
         if self.zenoh is not None:
             self.zenoh.start()
+
+    def _filters(self) -> list[CanFilter] | None:
+        try:
+            return reader_filters(
+                self._config.output.protocol,
+                self.table.node_ids,
+                recording=self._recorder is not None,
+                read_back_commands=self._read_back_commands,
+            )
+        except ValueRangeError as exc:  # a node ID learnt from an ESC that no filter can name
+            log.warning("CAN reader receives every frame: %s", exc)
+            return None
 
     def _learn_ids(self, bus: can.BusABC | None) -> None:
         if bus is None:
@@ -127,6 +167,7 @@ class Fanout:
                 "telemetry": reader.telemetry if reader else 0,
                 "malformed": reader.malformed if reader else 0,
                 "read_errors": reader.read_errors if reader else 0,
+                "kernel_drops": reader.kernel_drops if reader else None,
                 "unknown_esc_frames": self.table.unknown_frames,
             }
         }
