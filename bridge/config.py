@@ -50,6 +50,8 @@ FT_COMMAND_TIMEOUT_MS = 450  # the ESC drops a command not repeated within this 
 # A command must reach each FT ESC at least this many times within its timeout, so that a few
 # lost frames or a stalled cycle never let the ESC time out mid-flight.
 FT_MIN_REFRESHES_PER_TIMEOUT = 4
+# The system ID ground stations use unless told otherwise (QGroundControl, Mission Planner).
+GCS_SYSTEM_ID = 255
 
 
 def _shown(value: Any) -> str:
@@ -98,14 +100,16 @@ def _bool(v: Any) -> str | None:
     return None if isinstance(v, bool) else "true or false"
 
 
-def _int_list(lo: int, hi: int) -> Callable[[Any], str | None]:
+def _int_list(lo: int, hi: int, *, non_empty: bool = False) -> Callable[[Any], str | None]:
+    what = "a non-empty list" if non_empty else "a list"
+
     def check(v: Any) -> str | None:
         ok = isinstance(v, list) and all(
             isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in v
         )
-        if not ok:
-            return f"a list of integers {lo}..{hi}"
-        return None if len(set(v)) == len(v) else f"a list of distinct integers {lo}..{hi}"
+        if not ok or (non_empty and not v):
+            return f"{what} of integers {lo}..{hi}"
+        return None if len(set(v)) == len(v) else f"{what} of distinct integers {lo}..{hi}"
 
     return check
 
@@ -120,6 +124,11 @@ def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]
 def _range_pair(v: Any) -> str | None:
     ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] != v[1]
     return None if ok else "two different numbers [low, high]"
+
+
+def _ordered_pair(v: Any) -> str | None:
+    ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]
+    return None if ok else "two numbers [low, high] with low < high"
 
 
 def _options(v: Any) -> str | None:
@@ -219,6 +228,12 @@ class MavlinkConfig:
     component_id: int = key(
         191, _int_range(1, 255), "the bridge's own component ID (191 = ONBOARD_COMPUTER)"
     )
+    command_senders: tuple[int, ...] | None = key(
+        None,
+        _optional(_int_list(1, 255, non_empty=True)),
+        "system IDs whose commands that move motors (MAV_CMD_DO_MOTOR_TEST) are obeyed "
+        "(default: 255, a ground station, and the autopilot's system ID)",
+    )
     stream_rate_hz: float = key(
         200.0, _float_range(0, 1000), "output stream rate asked of the autopilot; 0 = do not ask"
     )
@@ -252,6 +267,14 @@ class MixerConfig:
         "input range of every channel source, overriding the mixer's (default: the mixer's, "
         "PWM [1000, 2000] µs; [0, 1] for hil_actuator_controls)",
     )
+    valid_range: tuple[float, float] | None = key(
+        None,
+        _optional(_ordered_pair),
+        "channel inputs outside this are invalid: safe values, FAILSAFE invalid input (default "
+        "[800, 2200] µs for the PWM sources servo_output_raw and actuator_output_status; "
+        "[-1.5, 1.5] for the normalized sources hil_actuator_controls and "
+        "actuator_control_target); it must contain the input range",
+    )
     axis_channels: Mapping[str, int] | None = key(
         None,
         _optional(_check(_is_axis_map, "a table of roll, pitch, yaw, thrust = channel 1..32")),
@@ -275,7 +298,18 @@ class OutputConfig:
     input_timeout_ms: int = key(
         100, _int_range(20, 1000), "input older than this is stale: safe values are sent"
     )
+    arming_timeout_ms: int = key(
+        3000,
+        _int_range(500, 60_000),
+        "the autopilot's arming state (its HEARTBEAT) older than this counts as disarmed: "
+        "safe values",
+    )
     shutdown_flush_ms: int = key(200, _int_range(0, 5000), "safe values sent this long on exit")
+    motor_test: bool = key(
+        False,
+        _bool,
+        "obey MAV_CMD_DO_MOTOR_TEST from the allowed senders while disarmed; off: refused",
+    )
     motor_test_max_s: float = key(
         10.0,
         _float_range(0.1, 600),
@@ -443,6 +477,15 @@ class BridgeConfig:
     @property
     def bitrate(self) -> int:
         return self.can.bitrate or DEFAULT_BITRATE[self.output.protocol]
+
+    @property
+    def command_sender_ids(self) -> frozenset[int]:
+        """The system IDs whose motor-moving commands are obeyed: ``[mavlink] command_senders``,
+        or 255 (a ground station's usual ID) and the autopilot's system ID."""
+        senders = self.mavlink.command_senders
+        if senders is not None:
+            return frozenset(senders)
+        return frozenset({GCS_SYSTEM_ID, self.mavlink.autopilot_system_id})
 
 
 SECTIONS: dict[str, type[Any]] = {
