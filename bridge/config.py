@@ -10,7 +10,9 @@ Every key is documented in ``config/README.md``; a test keeps that page and this
 
 from __future__ import annotations
 
+import codecs
 import math
+import reprlib
 import socket
 import tomllib
 from collections.abc import Callable, Mapping
@@ -30,6 +32,15 @@ MavlinkSource = Literal[
 Latency = Literal["fixed", "immediate"]
 LoopMode = Literal["auto", "process", "thread"]
 
+# A config file is a few kB; anything much bigger is the wrong file (or /dev/zero), and is
+# refused before it is read into memory.
+MAX_CONFIG_BYTES = 1 << 20
+# Values quoted in messages are shortened: a 4000-digit number or a 10 000-entry list must not
+# bury what was wrong.
+_SHOWN = reprlib.Repr()
+_SHOWN.maxstring = _SHOWN.maxother = 60
+_SHOWN.maxlong = 40
+
 # Per-protocol defaults for keys whose right value depends on the protocol.
 DEFAULT_RATE_HZ: dict[ProtocolName, int] = {"ckesc": 400, "ft": 100}
 # CKESC ships at 500 kbit/s (PROTOCOLS.md §1); FT has no factory rate, VESC firmware uses 500k.
@@ -39,6 +50,24 @@ FT_COMMAND_TIMEOUT_MS = 450  # the ESC drops a command not repeated within this 
 # A command must reach each FT ESC at least this many times within its timeout, so that a few
 # lost frames or a stalled cycle never let the ESC time out mid-flight.
 FT_MIN_REFRESHES_PER_TIMEOUT = 4
+# The system ID ground stations use unless told otherwise (QGroundControl, Mission Planner).
+GCS_SYSTEM_ID = 255
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)``, shortened for a message."""
+    return _SHOWN.repr(value)
+
+
+def _is_number(v: Any) -> bool:
+    """A finite int or float (not a bool) that a float can hold: TOML integers have no bound,
+    and ``float(10**400)`` raises."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an int beyond the float range
+        return False
 
 
 def _check(predicate: Callable[[Any], bool], expected: str) -> Callable[[Any], str | None]:
@@ -56,15 +85,7 @@ def _int_range(lo: int, hi: int) -> Callable[[Any], str | None]:
 
 
 def _float_range(lo: float, hi: float) -> Callable[[Any], str | None]:
-    return _check(
-        lambda v: (
-            isinstance(v, int | float)
-            and not isinstance(v, bool)
-            and math.isfinite(v)
-            and lo <= v <= hi
-        ),
-        f"a number {lo:g}..{hi:g}",
-    )
+    return _check(lambda v: _is_number(v) and lo <= v <= hi, f"a number {lo:g}..{hi:g}")
 
 
 def _choice(*choices: str) -> Callable[[Any], str | None]:
@@ -79,14 +100,16 @@ def _bool(v: Any) -> str | None:
     return None if isinstance(v, bool) else "true or false"
 
 
-def _int_list(lo: int, hi: int) -> Callable[[Any], str | None]:
+def _int_list(lo: int, hi: int, *, non_empty: bool = False) -> Callable[[Any], str | None]:
+    what = "a non-empty list" if non_empty else "a list"
+
     def check(v: Any) -> str | None:
         ok = isinstance(v, list) and all(
             isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in v
         )
-        if not ok:
-            return f"a list of integers {lo}..{hi}"
-        return None if len(set(v)) == len(v) else f"a list of distinct integers {lo}..{hi}"
+        if not ok or (non_empty and not v):
+            return f"{what} of integers {lo}..{hi}"
+        return None if len(set(v)) == len(v) else f"{what} of distinct integers {lo}..{hi}"
 
     return check
 
@@ -99,13 +122,13 @@ def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]
 
 
 def _range_pair(v: Any) -> str | None:
-    ok = (
-        isinstance(v, list)
-        and len(v) == 2
-        and all(isinstance(x, int | float) and math.isfinite(x) for x in v)
-        and v[0] != v[1]
-    )
+    ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] != v[1]
     return None if ok else "two different numbers [low, high]"
+
+
+def _ordered_pair(v: Any) -> str | None:
+    ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]
+    return None if ok else "two numbers [low, high] with low < high"
 
 
 def _options(v: Any) -> str | None:
@@ -137,7 +160,7 @@ def _is_report_rates(v: Any) -> bool:
     return (
         isinstance(v, list | tuple)
         and len(v) == 3
-        and all(isinstance(x, int | float) and 2 <= x <= 50 for x in v)
+        and all(_is_number(x) and 2 <= x <= 50 for x in v)
     )
 
 
@@ -205,6 +228,12 @@ class MavlinkConfig:
     component_id: int = key(
         191, _int_range(1, 255), "the bridge's own component ID (191 = ONBOARD_COMPUTER)"
     )
+    command_senders: tuple[int, ...] | None = key(
+        None,
+        _optional(_int_list(1, 255, non_empty=True)),
+        "system IDs whose commands that move motors (MAV_CMD_DO_MOTOR_TEST) are obeyed "
+        "(default: 255, a ground station, and the autopilot's system ID)",
+    )
     stream_rate_hz: float = key(
         200.0, _float_range(0, 1000), "output stream rate asked of the autopilot; 0 = do not ask"
     )
@@ -238,6 +267,14 @@ class MixerConfig:
         "input range of every channel source, overriding the mixer's (default: the mixer's, "
         "PWM [1000, 2000] µs; [0, 1] for hil_actuator_controls)",
     )
+    valid_range: tuple[float, float] | None = key(
+        None,
+        _optional(_ordered_pair),
+        "channel inputs outside this are invalid: safe values, FAILSAFE invalid input (default "
+        "[800, 2200] µs for the PWM sources servo_output_raw and actuator_output_status; "
+        "[-1.5, 1.5] for the normalized sources hil_actuator_controls and "
+        "actuator_control_target); it must contain the input range",
+    )
     axis_channels: Mapping[str, int] | None = key(
         None,
         _optional(_check(_is_axis_map, "a table of roll, pitch, yaw, thrust = channel 1..32")),
@@ -261,7 +298,18 @@ class OutputConfig:
     input_timeout_ms: int = key(
         100, _int_range(20, 1000), "input older than this is stale: safe values are sent"
     )
+    arming_timeout_ms: int = key(
+        3000,
+        _int_range(500, 60_000),
+        "the autopilot's arming state (its HEARTBEAT) older than this counts as disarmed: "
+        "safe values",
+    )
     shutdown_flush_ms: int = key(200, _int_range(0, 5000), "safe values sent this long on exit")
+    motor_test: bool = key(
+        False,
+        _bool,
+        "obey MAV_CMD_DO_MOTOR_TEST from the allowed senders while disarmed; off: refused",
+    )
     motor_test_max_s: float = key(
         10.0,
         _float_range(0.1, 600),
@@ -430,6 +478,15 @@ class BridgeConfig:
     def bitrate(self) -> int:
         return self.can.bitrate or DEFAULT_BITRATE[self.output.protocol]
 
+    @property
+    def command_sender_ids(self) -> frozenset[int]:
+        """The system IDs whose motor-moving commands are obeyed: ``[mavlink] command_senders``,
+        or 255 (a ground station's usual ID) and the autopilot's system ID."""
+        senders = self.mavlink.command_senders
+        if senders is not None:
+            return frozenset(senders)
+        return frozenset({GCS_SYSTEM_ID, self.mavlink.autopilot_system_id})
+
 
 SECTIONS: dict[str, type[Any]] = {
     "mavlink": MavlinkConfig,
@@ -445,19 +502,65 @@ SECTIONS: dict[str, type[Any]] = {
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file into raw tables (validated later by :func:`build_config`).
 
+    The file must be UTF-8 text (a leading byte-order mark is allowed, as Windows editors write
+    one) of at most :data:`MAX_CONFIG_BYTES`; an empty file is valid and means the defaults.
+
     Raises:
-        ConfigError: the file is missing, unreadable or not valid TOML.
+        ConfigError: the file is missing, a directory, unreadable, too big, binary or not
+            UTF-8 (naming the byte offset), or not valid TOML.
     """
     path = Path(path)
     try:
         with path.open("rb") as file:
-            return tomllib.load(file)
+            data = file.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory; expected a TOML config file") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from exc
+        raise ConfigError(
+            f"{path}: cannot read: {exc.strerror or exc}; expected a readable TOML config file"
+        ) from exc
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(
+            f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; expected a TOML config file"
+        )
+    text = _decode_text(data, path)
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except RecursionError:
+        raise ConfigError(
+            f"{path}: not valid TOML: arrays or inline tables nested too deeply"
+        ) from None
+    except ValueError as exc:
+        # tomllib lets int()'s limit of 4300 digits through as a plain ValueError.
+        reason = str(exc).split(";")[0]  # not its advice to change the interpreter's limit
+        raise ConfigError(f"{path}: not valid TOML: {reason}; expected a 64-bit integer") from exc
+
+
+def _decode_text(data: bytes, path: Path) -> str:
+    """``data`` as text, or ConfigError naming the offset of the first byte that is not."""
+    nul = data.find(b"\0")
+    start = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+    try:
+        text = data[start:].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        offset = start + exc.start
+        if 0 <= nul < offset:
+            raise ConfigError(
+                f"{path}: a binary file (NUL byte at offset {nul}); expected a TOML text file"
+            ) from None
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte 0x{data[offset]:02X} at offset {offset} "
+            f"({exc.reason}); expected a UTF-8 TOML file"
+        ) from None
+    if nul >= 0:
+        raise ConfigError(
+            f"{path}: a binary file (NUL byte at offset {nul}); expected a TOML text file"
+        )
+    return text
 
 
 def merge(base: dict[str, Any], override: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -486,7 +589,7 @@ def build_config(raw: Mapping[str, Any], source: str) -> BridgeConfig:
                 + ", ".join(f"[{s}]" for s in SECTIONS)
             )
         if not isinstance(table, dict):
-            raise ConfigError(f"{source}: [{name}] must be a table, got {table!r}")
+            raise ConfigError(f"{source}: [{name}] must be a table, got {_shown(table)}")
         sections[name] = _build_section(SECTIONS[name], name, table, source)
     config = BridgeConfig(source=source, **sections)
     _check_cross_section(config)
@@ -503,7 +606,7 @@ def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: 
             )
         problem = known[k].metadata["check"](value)
         if problem is not None:
-            raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {value!r}")
+            raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {_shown(value)}")
         if isinstance(value, list):
             value = tuple(value)
         values[k] = value

@@ -19,7 +19,6 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from types import FrameType, ModuleType
@@ -27,14 +26,13 @@ from typing import Any
 
 import can
 
-from bridge.busload import check_bus_load
-from bridge.can_io import SHAREABLE_INTERFACES, check_interface
-from bridge.config import BridgeConfig, with_esc_count
+from bridge.can_io import SHAREABLE_INTERFACES
+from bridge.config import BridgeConfig
 from bridge.errors import LinkError
 from bridge.fanout import Fanout
 from bridge.mailbox import CommandMailbox, LoopState, LoopStats
 from bridge.mavlink_in import MavlinkLink
-from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition, load_mixer
+from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer
 from bridge.motor_test import (
     Decision,
     MotorTestCommand,
@@ -45,25 +43,16 @@ from bridge.motor_test import (
     limits_for,
 )
 from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
+from bridge.preflight import Plan as Plan  # re-exported (mypy --strict): daemon.plan still works
+from bridge.preflight import plan as plan
 from bridge.record import Recording
 from bridge.telemetry.state import EscTable
-from bridge.zenoh_out import session_config
 
 log = logging.getLogger(__name__)
 
 SUPERVISE_PERIOD_S = 0.1
 ERROR_LOG_INTERVAL_S = 1.0  # CAN send failures are summed and logged at most this often
 LOOP_START_TIMEOUT_S = 15.0  # a spawned interpreter imports the bridge before it reports
-# Default input range of channel sources by MAVLink source, unless [mixer] input_range is set:
-# SERVO_OUTPUT_RAW and PX4's ACTUATOR_OUTPUT_STATUS (from actuator_outputs) carry PWM µs,
-# HIL_ACTUATOR_CONTROLS carries normalized 0..1 motor commands.
-SOURCE_INPUT_RANGES: dict[str, tuple[float, float] | None] = {
-    "servo_output_raw": None,  # the mixer's own (PWM 1000..2000 µs unless it says otherwise)
-    "actuator_output_status": None,
-    "hil_actuator_controls": (0.0, 1.0),
-    "actuator_control_target": None,
-}
-
 # MAV_SEVERITY values for STATUSTEXT.
 SEVERITY_CRITICAL, SEVERITY_WARNING, SEVERITY_NOTICE, SEVERITY_INFO = 2, 4, 5, 6
 STATE_REPORTS: dict[LoopState, tuple[int, str]] = {
@@ -81,34 +70,6 @@ ARMING_STATE_MAX_AGE_NS = 3_000_000_000
 NOT_SENDING = frozenset(
     {LoopState.STARTING, LoopState.STOPPING, LoopState.STOPPED, LoopState.FAILED}
 )
-
-
-@dataclass(frozen=True)
-class Plan:
-    """A validated start-up plan: nothing is opened or sent until :func:`run` executes it."""
-
-    config: BridgeConfig
-    mixer: MixerDefinition
-    load_text: str
-    input_range: tuple[float, float] | None  # the channel range, when the config sets it
-
-
-def plan(config: BridgeConfig) -> Plan:
-    """Validate ``config`` completely: mixer, ESC lists and bus load.
-
-    Raises:
-        ConfigError: anything wrong, named by file, key or mixer entry.
-    """
-    check_interface(config.can, config.source)
-    definition = load_mixer(config.mixer.name)
-    input_range = config.mixer.input_range or SOURCE_INPUT_RANGES[config.mavlink.source]
-    if input_range is not None:
-        definition = definition.with_input_range(*input_range)
-    config = with_esc_count(config, len(definition.outputs))
-    if config.zenoh.enabled:
-        session_config(config.zenoh)  # a malformed endpoint is a config error, found now
-    load = check_bus_load(config)
-    return Plan(config, definition, load.describe(), input_range)
 
 
 class MixerSink:

@@ -88,6 +88,7 @@ __all__ = [
     "MavlinkLink",
     "OutputStats",
     "Transport",
+    "check_endpoints",
     "parse_url",
 ]
 
@@ -267,6 +268,34 @@ def parse_url(url: str, key: str = "url") -> Endpoint:
         f"{where} is not a connection string esc-bridge accepts; "
         f"expected one of {ACCEPTED_URL_FORMS}"
     )
+
+
+def check_endpoints(config: MavlinkConfig) -> tuple[Endpoint, list[Endpoint]]:
+    """Parse ``url`` and every ``outputs`` entry, and refuse a connection listed twice.
+
+    Two entries are the same connection when they have the same transport and address (a port
+    written with leading zeros is the same port): opening both would fail, or send everything
+    twice. Called by :meth:`MavlinkLink.start` and by the start-up check before it.
+
+    Returns:
+        The autopilot's endpoint and the outputs' endpoints, in ``outputs`` order.
+
+    Raises:
+        ConfigError: a URL is malformed (see :func:`parse_url`), or an output repeats the
+            autopilot's URL or another output.
+    """
+    endpoint = parse_url(config.url)
+    outputs = [parse_url(url, "outputs") for url in config.outputs]
+    seen = {(endpoint.kind, endpoint.address): f"[mavlink] url {endpoint.url!r}"}
+    for output in outputs:
+        where = (output.kind, output.address)
+        if where in seen:
+            raise ConfigError(
+                f"[mavlink] outputs {output.url!r} is the same connection as {seen[where]}; "
+                "list each connection once"
+            )
+        seen[where] = repr(output.url)
+    return endpoint, outputs
 
 
 @functools.cache
@@ -451,17 +480,7 @@ class MavlinkLink:
         """
         if self._started or self._closed:
             raise RuntimeError("a MavlinkLink can be started once, and not after close()")
-        endpoint = parse_url(self._config.url)
-        outputs = [parse_url(url, "outputs") for url in self._config.outputs]
-        seen = {(endpoint.kind, endpoint.address): f"[mavlink] url {endpoint.url!r}"}
-        for output in outputs:
-            where = (output.kind, output.address)
-            if where in seen:
-                raise ConfigError(
-                    f"[mavlink] outputs {output.url!r} is the same connection as {seen[where]}; "
-                    "list each connection once"
-                )
-            seen[where] = repr(output.url)
+        endpoint, outputs = check_endpoints(self._config)
         if self._config.signing_key is not None:
             self._setup_signing(bytes.fromhex(self._config.signing_key))
         uplink = _Connection(endpoint, self.stats, is_autopilot=True)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 from collections.abc import Callable
 from typing import Any
 
 from bridge.cli._common import EXIT_OK, can_option, with_flag_names
-from bridge.config import BridgeConfig, build_config, merge, read_config_file
+from bridge.config import SECTIONS, BridgeConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError
 
 
@@ -36,7 +37,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     run.add_argument(
         "--check",
         action="store_true",
-        help="validate the configuration, print the plan and bus load, and exit",
+        help="validate the configuration (and --record's directory) as run does before it "
+        "sends anything, print the plan, bus load and each check, and exit",
     )
     run.set_defaults(handler=_run)
 
@@ -68,6 +70,18 @@ RUN_METAVARS = {
     "--mixer": "NAME|FILE",
     "--vehicle": "NAME",
 }
+
+
+# The flags that set a config key without a RUN_OVERRIDES entry: args attribute -> (section, key).
+OTHER_FLAGS: dict[str, tuple[str, str, str]] = {
+    "--can-option": ("can_option", "can", "options"),
+    "--zenoh-connect": ("zenoh_connect", "zenoh", "connect"),
+    "--zenoh-listen": ("zenoh_listen", "zenoh", "listen"),
+    "--no-zenoh-scouting": ("zenoh_scouting", "zenoh", "multicast_scouting"),
+    "--no-zenoh": ("zenoh_enabled", "zenoh", "enabled"),
+}
+# A key as messages name it, e.g. "[mavlink] url".
+_KEY_NAME = re.compile(r"\[(?:" + "|".join(SECTIONS) + r")\] \w+")
 
 
 def _add_run_overrides(parser: argparse.ArgumentParser) -> None:
@@ -149,10 +163,40 @@ def run_config(args: argparse.Namespace) -> BridgeConfig:
         return build_config(overrides, "command line")
     raw = read_config_file(args.config)
     if "options" in overrides.get("can", {}):
-        file_options = raw.get("can", {}).get("options", {})
+        file_can = raw.get("can")
+        file_options = file_can.get("options", {}) if isinstance(file_can, dict) else None
         if isinstance(file_options, dict):
             overrides["can"]["options"] = file_options | overrides["can"]["options"]
     return build_config(merge(raw, overrides), args.config)
+
+
+def given_flags(args: argparse.Namespace) -> dict[str, tuple[str, str]]:
+    """The config-setting flags given on the command line: flag -> (section, key)."""
+    given = {
+        flag: (section, key)
+        for flag, (section, key, _, _) in RUN_OVERRIDES.items()
+        if getattr(args, flag.lstrip("-").replace("-", "_")) not in (None, [])
+    }
+    for flag, (name, section, key) in OTHER_FLAGS.items():
+        if getattr(args, name) not in (None, []):
+            given[flag] = (section, key)
+    return given
+
+
+def name_given_flags(exc: ConfigError, args: argparse.Namespace, source: str) -> ConfigError:
+    """``exc`` with each ``[section] key`` that a flag set written as that flag.
+
+    A flag wins over the file, so a key it set is the flag's value. When the message then names
+    no other key, the flags alone are to blame and it says "command line" instead of the file.
+    """
+    text = str(exc)
+    named = 0
+    for flag, (section, key) in given_flags(args).items():
+        text, count = re.subn(rf"\[{section}\] {key}\b", flag, text)
+        named += count
+    if named and not _KEY_NAME.search(text) and text.startswith(f"{source}: "):
+        text = "command line: " + text.removeprefix(f"{source}: ")
+    return ConfigError(text)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -161,13 +205,19 @@ def _run(args: argparse.Namespace) -> int:
     )
     # pymavlink logs every new stream and replayed timestamp at INFO; the link counts those.
     logging.getLogger("pymavlink").setLevel(logging.WARNING)
-    from bridge import daemon  # pymavlink and the loop are only loaded for `run`
+    from bridge import daemon, preflight  # pymavlink and the loop are only loaded for `run`
 
     config = run_config(args)
+    # The same checks with and without --check: whatever run refuses, --check finds first.
+    try:
+        checked = preflight.plan(config, record_dir=args.record)
+    except ConfigError as exc:
+        raise name_given_flags(exc, args, config.source) from None
     if args.check:
-        checked = daemon.plan(config)
         print(f"{config.source}: OK")
         print(f"  mixer {checked.mixer.name}: {len(checked.mixer.outputs)} outputs")
         print(f"  {checked.load_text}")
+        for line in checked.passed:
+            print(f"  {line}")
         return EXIT_OK
     return daemon.run(config, record_dir=args.record)
