@@ -59,7 +59,6 @@ import hmac
 import logging
 import math
 import random
-import re
 import select
 import struct
 import threading
@@ -68,13 +67,20 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType, TracebackType
-from typing import Any, BinaryIO, Final, Literal, Protocol, cast
+from typing import Any, BinaryIO, Final, Protocol
 
 from pymavlink import mavutil
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError, LinkError
 from bridge.mavlink import load_dialect
+from bridge.mavlink.transport import (
+    ACCEPTED_URL_FORMS,
+    DEFAULT_BAUD,
+    Endpoint,
+    Transport,
+    parse_url,
+)
 from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, INPUT_NAMES
 
 __all__ = [
@@ -94,8 +100,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-Transport = Literal["udpin", "udpout", "tcp", "tcpin", "serial"]
-
 CommandHandler = Callable[[Any], int | None]
 """Takes a COMMAND_LONG addressed to the bridge; returns a MAV_RESULT, or None: not mine."""
 
@@ -107,15 +111,6 @@ _NAN: Final = math.nan
 _SERVO_PORT_CHANNELS: Final = 16  # SERVO_OUTPUT_RAW carries 16 channels per port
 _SERVO_FIELDS: Final = tuple(f"servo{i}_raw" for i in range(1, _SERVO_PORT_CHANNELS + 1))
 _HIL_CHANNELS: Final = 16
-
-ACCEPTED_URL_FORMS: Final = (
-    "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, "
-    "serial:DEVICE[:BAUD] or a device path DEVICE[:BAUD] (e.g. serial:/dev/ttyAMA0:921600)"
-)
-DEFAULT_BAUD: Final = 115_200  # pymavlink's default; USB CDC links ignore it
-_NETWORK_URL: Final = re.compile(r"(udpin|udpout|tcp|tcpin):([^:\s]+):([0-9]{1,5})")
-# The device ends at the last ":digits", if any: /dev/serial/by-path names contain colons.
-_SERIAL_URL: Final = re.compile(r"(?:serial:)?(/\S*?)(?::([0-9]+))?")
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
 _POLL_S: Final = 0.1  # readers and writers wake at least this often to notice close()
@@ -218,56 +213,6 @@ class OutputStats:
 
 
 _Counters = LinkStats | OutputStats
-
-
-@dataclass(frozen=True)
-class Endpoint:
-    """A validated connection string."""
-
-    url: str
-    """As configured, for messages."""
-    kind: Transport
-    address: str
-    """``HOST:PORT``, or the serial device path."""
-    baud: int = DEFAULT_BAUD
-    """Serial only, in bit/s."""
-
-    @property
-    def is_stream(self) -> bool:
-        """A byte stream that can end (TCP, serial) rather than datagrams."""
-        return self.kind in ("tcp", "tcpin", "serial")
-
-
-def parse_url(url: str, key: str = "url") -> Endpoint:
-    """Check a connection string and split it into what pymavlink opens.
-
-    Only the forms in :data:`ACCEPTED_URL_FORMS` are accepted: pymavlink would also take a file
-    name (and replay it as a log, or run it if it looks like a program), which must never
-    happen by accident on a vehicle. ``key`` is the ``[mavlink]`` key the URL came from, for
-    the message (``url`` or ``outputs``).
-
-    Raises:
-        ConfigError: naming the key, the URL and the accepted forms.
-    """
-    where = f"[mavlink] {key} {url!r}"
-    network = _NETWORK_URL.fullmatch(url)
-    if network is not None:
-        kind, host, port = network.groups()
-        if not 1 <= int(port) <= 65535:
-            raise ConfigError(
-                f"{where}: port {port} is not 1..65535; expected one of {ACCEPTED_URL_FORMS}"
-            )
-        return Endpoint(url, cast(Transport, kind), f"{host}:{int(port)}")
-    serial = _SERIAL_URL.fullmatch(url)
-    if serial is not None:
-        device, baud = serial.groups()
-        if baud is not None and int(baud) == 0:
-            raise ConfigError(f"{where}: baud rate 0; expected one of {ACCEPTED_URL_FORMS}")
-        return Endpoint(url, "serial", device, int(baud) if baud else DEFAULT_BAUD)
-    raise ConfigError(
-        f"{where} is not a connection string esc-bridge accepts; "
-        f"expected one of {ACCEPTED_URL_FORMS}"
-    )
 
 
 def check_endpoints(config: MavlinkConfig) -> tuple[Endpoint, list[Endpoint]]:
