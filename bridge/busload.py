@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from bridge.config import BridgeConfig
 from bridge.errors import ConfigError
 from bridge.escs.drivers import ft_command_dlc
-from bridge.output_loop import IMMEDIATE_MAX_RATE_FACTOR
 
 CKESC_THROTTLE_FRAME_BYTES = 8  # 12b, 14b (7 + tail) and 10b all fill the frame
 CKESC_TELEMETRY_BYTES = (7, 6, 8)  # MSG1, MSG2, MSG3 with their tail bytes
 FT_TELEMETRY_FRAMES = 3  # REALTIME_DATA_0, 1 and 2, 8 bytes each
 FT_TELEMETRY_BYTES = 8
+IMMEDIATE_MAX_RATE_FACTOR = 2  # latency = "immediate" sends at most this many times the rate
 
 
 def frame_bits(data_bytes: int) -> int:

@@ -39,6 +39,7 @@ from bridge.errors import ConfigError
 
 __all__ = [
     "AXIS_NAMES",
+    "AXIS_VALID_RANGE",
     "CHANNEL_COUNT",
     "INPUT_NAMES",
     "INPUT_RANGE_LIMITS",
@@ -67,6 +68,9 @@ INPUT_NAMES: tuple[str, ...] = tuple(f"ch{i}" for i in range(1, CHANNEL_COUNT + 
 MAX_OUTPUTS = 32
 PWM_RANGE_US = (1000.0, 2000.0)
 """Default channel input range: PWM pulse width in microseconds."""
+
+AXIS_VALID_RANGE = (-1.5, 1.5)
+"""Roll, pitch, yaw and thrust inputs outside this are garbage: the input is refused."""
 
 INPUT_RANGE_LIMITS = (-1.0, 65535.0)
 """Bounds for a channel input range: MAVLink's normalized floats (-1..1) to uint16 PWM (µs)."""
@@ -459,7 +463,12 @@ class Mixer:
     flat loops (it runs at 400..1000 Hz).
     """
 
-    def __init__(self, definition: MixerDefinition) -> None:
+    def __init__(
+        self, definition: MixerDefinition, valid_range: tuple[float, float] | None = None
+    ) -> None:
+        """``valid_range``: channel inputs outside it make :meth:`mix` refuse the input (None:
+        only NaN and infinities are refused). Axis inputs are valid within
+        :data:`AXIS_VALID_RANGE`."""
         self.definition = definition
         outputs = definition.outputs
         rotor_outputs = [o for o in outputs if o.rotor is not None]
@@ -500,7 +509,13 @@ class Mixer:
             (o.reversed, o.minimum + o.maximum, o.minimum, o.maximum, o.deadband, o.idle)
             for o in outputs
         ]
-        self._used = tuple(sorted({_INPUT_INDEX[name] for o in outputs for name, _ in o.weights}))
+        used = sorted({_INPUT_INDEX[name] for o in outputs for name, _ in o.weights})
+        channel_lo, channel_hi = valid_range or (-math.inf, math.inf)
+        # (index, lowest, highest) of every input some output uses; NaN fails both compares.
+        self._valid = tuple(
+            (i, *((channel_lo, channel_hi) if i < CHANNEL_COUNT else AXIS_VALID_RANGE))
+            for i in used
+        )
 
     @property
     def n_outputs(self) -> int:
@@ -515,17 +530,18 @@ class Mixer:
         out of range are clamped to it. Armed, every output is at least its ``idle``; disarmed,
         the result is still computed (the daemon sends stop instead).
 
-        Returns None when an input that some output uses is NaN or infinite: the caller must
-        fail safe rather than guess.
+        Returns None when an input that some output uses is NaN, infinite or outside the valid
+        range (the ``valid_range`` given, :data:`AXIS_VALID_RANGE` for axes): the caller must
+        fail safe rather than guess. An autopilot's PWM 65535 or 3000, or a float of 1e38, is
+        garbage, not full throttle.
 
         Raises:
             ValueError: ``inputs`` does not have 36 entries.
         """
         if len(inputs) != len(INPUT_NAMES):
             raise ValueError(f"expected {len(INPUT_NAMES)} inputs, got {len(inputs)}")
-        isfinite = math.isfinite
-        for i in self._used:
-            if not isfinite(inputs[i]):
+        for i, lowest, highest in self._valid:
+            if not lowest <= inputs[i] <= highest:
                 return None
         out = self._mix_rotors(inputs, armed) if self._n_rotors else []
         for offset, terms in self._direct:

@@ -38,7 +38,7 @@ import can
 from bridge.can_io import check_interface, is_transient, open_bus
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError, LinkError
-from bridge.escs.drivers import EscDriver, make_driver
+from bridge.escs.drivers import EscDriver, flush_safe_values, make_driver
 from bridge.mixer import PWM_RANGE_US, MixerDefinition, load_mixer
 
 __all__ = [
@@ -314,15 +314,7 @@ def spin(
                     with contextlib.suppress(LinkError):
                         bus = sender.reopen(open_bus(config.can, config.bitrate))
                 flush_ms = max(config.output.shutdown_flush_ms, SPIN_MIN_FLUSH_MS)
-                flush_ticks = max(driver.ticks_per_cycle, math.ceil(flush_ms * 1e6 / period_ns))
-                next_ns = time.monotonic_ns()
-                for _ in range(flush_ticks):
-                    sender.send(driver.safe_frames(tick))
-                    tick += 1
-                    next_ns += period_ns
-                    delay_ns = next_ns - time.monotonic_ns()
-                    if delay_ns > 0:
-                        time.sleep(delay_ns / 1e9)
+                flush_safe_values(sender.send, driver, period_ns, flush_ms, tick)
         finally:
             bus.shutdown()
     return SpinResult(ended, elapsed_s, frames_sent, sender.sent, sender.errors, peak)

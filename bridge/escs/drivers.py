@@ -12,7 +12,9 @@ never sees a burst of N frames followed by silence.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+import time
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import can
@@ -147,3 +149,26 @@ def make_driver(config: BridgeConfig) -> EscDriver:
     if config.output.protocol == "ckesc":
         return CkescDriver(escs.ckesc_command, escs.ckesc_channels)
     return FtDriver(escs)
+
+
+def flush_safe_values(
+    send: Callable[[list[can.Message]], object],
+    driver: EscDriver,
+    period_ns: int,
+    duration_ms: float,
+    first_tick: int = 0,
+) -> int:
+    """Send the safe values every ``period_ns`` for ``duration_ms`` (at least one whole cycle,
+    so every FT ESC gets one) through ``send``, on absolute deadlines; returns the next tick.
+    For the ends of things: the end of a spin, the survivor of a dead control loop."""
+    ticks = max(driver.ticks_per_cycle, math.ceil(duration_ms * 1e6 / period_ns))
+    tick = first_tick
+    next_ns = time.monotonic_ns()
+    for _ in range(ticks):
+        send(driver.safe_frames(tick))
+        tick += 1
+        next_ns += period_ns
+        delay_ns = next_ns - time.monotonic_ns()
+        if delay_ns > 0:
+            time.sleep(delay_ns / 1e9)
+    return tick
