@@ -1,38 +1,47 @@
-"""The bridge daemon: MAVLink motor outputs -> mixer -> mailbox -> output loop -> CAN.
+"""The bridge daemon: the supervisor of the control loop, and the best-effort side.
 
 Start-up validates everything before a frame is sent (config, mixer, bus load, the MAVLink
-URL), then starts the output loop, which sends safe values until valid, armed, fresh input
-arrives. The supervisor (this module, in the main process) never touches the hot path: it
-samples the loop's counters a few times a second to log and to report each state transition
-by STATUSTEXT, and on SIGINT/SIGTERM asks the loop to send safe values for
-``shutdown_flush_ms`` and stop. A ground station's MAV_CMD_DO_MOTOR_TEST is decided here
-(:class:`MotorTestControl`) and run by the loop while the autopilot is disarmed.
+URLs), then starts the control loop (:mod:`bridge.output_loop`: in a real-time process of its
+own where the bus allows it), which owns the autopilot's link and the CAN transmit handle and
+sends safe values until valid, armed, fresh input arrives. Everything else lives here, in the
+main process, and may stall without touching the control path: the MAVLink side of the
+autopilot link (relayed by the loop: commands, HEARTBEAT, stream requests, recording), the
+ground-station outputs, the CAN reader and the telemetry publishers.
+
+The supervisor samples the loop's counters a few times a second to log and to report each
+state transition by STATUSTEXT. On a stop signal (SIGTERM, SIGHUP, SIGQUIT, SIGINT) it asks
+the loop to send safe values for ``shutdown_flush_ms`` and exits 0. If the loop dies, it sends
+the safe values itself and exits 1, so that the service manager restarts the bridge; if this
+process dies, the loop notices at once (its relay reads end of file) and flushes by itself.
+A ground station's MAV_CMD_DO_MOTOR_TEST is decided here (:class:`MotorTestControl`) and run
+by the loop while the autopilot is disarmed.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import multiprocessing
-import os
+import multiprocessing.connection
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
-from multiprocessing.connection import Connection
 from pathlib import Path
-from types import FrameType, ModuleType
+from types import ModuleType
 from typing import Any
 
 import can
 
-from bridge.can_io import SHAREABLE_INTERFACES
+from bridge.autopilot_input import InputSetup
+from bridge.can_io import SHAREABLE_INTERFACES, open_bus
 from bridge.config import BridgeConfig
-from bridge.errors import LinkError
+from bridge.errors import BridgeError, LinkError
+from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.fanout import Fanout
-from bridge.mailbox import CommandMailbox, LoopState, LoopStats
+from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.mavlink_in import MavlinkLink
-from bridge.mixer import INPUT_NAMES, PWM_RANGE_US, AxisChannels, Mixer
+from bridge.mixer import INPUT_NAMES
 from bridge.motor_test import (
     Decision,
     MotorTestCommand,
@@ -42,10 +51,12 @@ from bridge.motor_test import (
     decide,
     limits_for,
 )
-from bridge.output_loop import LoopSetup, OutputLoop, run_in_process
-from bridge.preflight import Plan as Plan  # re-exported (mypy --strict): daemon.plan still works
-from bridge.preflight import plan as plan
+from bridge.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
+from bridge.preflight import Plan
 from bridge.record import Recording
+from bridge.relay import MainConnection, relay_pair
+from bridge.safety import SENDING_COMMANDS, LoopState
+from bridge.stopping import StopSignals
 from bridge.telemetry.state import EscTable
 
 log = logging.getLogger(__name__)
@@ -63,91 +74,76 @@ STATE_REPORTS: dict[LoopState, tuple[int, str]] = {
     LoopState.RUNNING: (SEVERITY_INFO, "ESC out: armed, sending motor commands"),
     LoopState.STOPPING: (SEVERITY_NOTICE, "ESC out: shutting down, motors stopped"),
     LoopState.MOTOR_TEST: (SEVERITY_WARNING, "ESC out: MOTOR TEST, one motor may spin"),
+    LoopState.HEARTBEAT_LOST: (
+        SEVERITY_CRITICAL,
+        "ESC out: FAILSAFE autopilot HEARTBEAT lost, motors stopped",
+    ),
 }
-# A motor test starts only while the autopilot's arming state is this fresh (HEARTBEAT: 1 Hz).
-ARMING_STATE_MAX_AGE_NS = 3_000_000_000
+# After accepting a motor test, the supervisor allows the loop this long to start it before a
+# loop not in MOTOR_TEST means the test was ended (armed, autopilot lost).
+MOTOR_TEST_START_GRACE_NS = 300_000_000
 # Loop states in which a motor test cannot start: the loop is not (or no longer) sending.
 NOT_SENDING = frozenset(
     {LoopState.STARTING, LoopState.STOPPING, LoopState.STOPPED, LoopState.FAILED}
 )
 
 
-class MixerSink:
-    """Receives the autopilot's outputs on the MAVLink thread, mixes, fills the mailbox."""
+class InputMonitor:
+    """The autopilot's outputs as the main process sees them on the relayed link, for the
+    reports only (``actuators/input``): the control loop acts on its own reading."""
 
-    def __init__(
-        self,
-        mixer: Mixer,
-        mailbox: CommandMailbox,
-        wake: Connection | None,
-        axes: AxisChannels | None = None,
-    ) -> None:
-        self._mixer = mixer
-        self._axes = axes
-        self._mailbox = mailbox
-        self._wake_fd = wake.fileno() if wake is not None else None
-        self._armed = False
-        self.armed_at_ns = 0  # monotonic time of the last arming state heard; 0 = never
-        self.mixer_errors = 0
-        # The newest input and mix, for the telemetry publishers (replaced, never mutated).
-        self.last_input: tuple[list[float], list[float] | None, int] | None = None
+    def __init__(self) -> None:
+        # The newest input vector and when it arrived (replaced, never mutated).
+        self.last_input: tuple[list[float], int] | None = None
 
     def on_actuators(self, values: list[float], time_ns: int) -> None:
-        if self._axes is not None:
-            self._axes.fill(values)
-        try:
-            fractions = self._mixer.mix(values, self._armed)
-        except Exception:  # any mixer fault must become a safe output, never a crash
-            self.mixer_errors += 1
-            log.exception("mixer failed; sending safe values")
-            fractions = None
-        self._mailbox.write(fractions, time_ns)
-        self.last_input = (values, fractions, time_ns)
-        if self._wake_fd is not None:
-            # A full pipe means a wake-up is already pending: the loop reads the newest anyway.
-            with contextlib.suppress(BlockingIOError):
-                os.write(self._wake_fd, b"\x01")
+        self.last_input = (values, time_ns)
 
     def on_armed(self, armed: bool, time_ns: int) -> None:
-        self._armed = armed
-        self.armed_at_ns = time_ns
-        self._mailbox.write_armed(armed, time_ns)
-
-    @property
-    def armed(self) -> bool:
-        return self._armed
+        pass  # the loop's own arming state (InputSnapshot) is the one that counts
 
 
 class MotorTestControl:
     """MAV_CMD_DO_MOTOR_TEST: checked on a MAVLink reader thread (:meth:`handle_command`),
-    handed to the output loop through the mailbox, followed and reported by the supervisor
+    handed to the control loop through shared memory, followed and reported by the supervisor
     (:meth:`watch`).
 
-    A valid test (:func:`bridge.motor_test.decide`) starts only while the autopilot is known to
-    be disarmed (its arming state heard within :data:`ARMING_STATE_MAX_AGE_NS`) and the loop
-    is sending; otherwise MAV_RESULT_TEMPORARILY_REJECTED, with a STATUSTEXT saying why. A new
-    command replaces a running test; throttle 0 stops it. The loop ends a test by itself at its
-    time or the moment the autopilot arms; this class only reports it.
+    A command moves a motor, so it is obeyed only when ``[output] motor_test`` is on and it
+    comes from a system the configuration allows (``[mavlink] command_senders``: by default the
+    ground stations' usual 255 and the autopilot's own system); with a signing key, unsigned
+    commands never get this far. Otherwise MAV_RESULT_DENIED. A valid test
+    (:func:`bridge.motor_test.decide`) starts only while the control loop knows the autopilot
+    to be disarmed (its HEARTBEAT within the arming timeout) and is sending; otherwise
+    MAV_RESULT_TEMPORARILY_REJECTED, with a STATUSTEXT saying why. A new command replaces a
+    running test; throttle 0 stops it. The loop ends a test by itself at its time, the moment
+    the autopilot arms or when its HEARTBEAT is lost; this class only reports it.
     """
 
     def __init__(
         self,
         limits: MotorTestLimits,
-        mailbox: CommandMailbox,
-        sink: MixerSink,
+        config: BridgeConfig,
+        motor_tests: MotorTestBlock,
+        snapshot: InputSnapshot,
         stats: LoopStats,
         report: Callable[[int, str], None],
         dialect: ModuleType,
     ) -> None:
         self._limits = limits
-        self._mailbox = mailbox
-        self._sink = sink
+        self._enabled = config.output.motor_test
+        self._senders = config.command_sender_ids
+        self._arming_timeout_ns = config.output.arming_timeout_ms * 1_000_000
+        self._motor_tests = motor_tests
+        self._snapshot = snapshot
         self._stats = stats
         self._report = report
         self._command_id: int = dialect.MAV_CMD_DO_MOTOR_TEST
         self._results = {v: int(getattr(dialect, f"MAV_RESULT_{v.value}")) for v in Verdict}
+        self._denied = int(dialect.MAV_RESULT_DENIED)
+        self.refused_senders = 0
+        """Motor tests refused because their sender is not allowed."""
         # Commands come from every connection's reader thread and the supervisor cancels: the
-        # lock keeps the mailbox's motor-test block to one writer at a time.
+        # lock keeps the motor-test block to one writer at a time.
         self._lock = threading.Lock()
         self._running: tuple[MotorTestPlan, int] | None = None  # the plan and its end, ns
         self._reported_motor = 0
@@ -156,6 +152,21 @@ class MotorTestControl:
         """The link's command handler: a MAV_RESULT for DO_MOTOR_TEST, None for the others."""
         if msg.command != self._command_id:
             return None
+        sender = msg.get_srcSystem()
+        if sender not in self._senders:
+            self.refused_senders += 1
+            if self.refused_senders & (self.refused_senders - 1) == 0:  # 1st, 2nd, 4th, ...
+                log.warning(
+                    "refused a motor test from system %d: not in [mavlink] command_senders %s "
+                    "(%d refused so far)",
+                    sender,
+                    sorted(self._senders),
+                    self.refused_senders,
+                )
+            return self._denied
+        if not self._enabled:
+            self._report(SEVERITY_WARNING, "Motor test refused: off in the bridge's config")
+            return self._denied
         command = MotorTestCommand(
             msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6
         )
@@ -171,21 +182,25 @@ class MotorTestControl:
         """Run an accepted decision, or refuse it for now. Called with the lock held."""
         plan = decision.plan
         if plan is None:  # throttle 0: stop, whatever the vehicle does
-            self._mailbox.stop_motor_test()
+            self._motor_tests.stop_motor_test()
             self._running = None
             return decision
         now = time.monotonic_ns()
-        sink = self._sink
-        if sink.armed:
+        seen = self._snapshot.read()
+        if seen is not None and seen.armed:
             why = "vehicle armed"
-        elif not sink.armed_at_ns or now - sink.armed_at_ns > ARMING_STATE_MAX_AGE_NS:
+        elif (
+            seen is None
+            or not seen.armed_heard_ns
+            or (now - seen.armed_heard_ns > self._arming_timeout_ns)
+        ):
             why = "autopilot not heard"
         elif LoopState(self._stats["state"]) in NOT_SENDING:
             why = "bridge not sending"
         else:
             on_ns = round(plan.on_s * 1e9)
             step_ns = on_ns + round(plan.gap_s * 1e9)
-            self._mailbox.write_motor_test(
+            self._motor_tests.write_motor_test(
                 plan.first, plan.count, plan.fraction, now, on_ns, step_ns
             )
             self._running = (plan, now + round(plan.total_s * 1e9))
@@ -195,25 +210,33 @@ class MotorTestControl:
 
     def watch(self) -> None:
         """From the supervisor, a few times a second: report each motor of a sequence as it
-        starts, and the end of a test (its time, or the autopilot arming)."""
+        starts, and the end of a test (its time, the autopilot arming or going silent)."""
         with self._lock:
             if self._running is None:
                 return
             plan, until_ns = self._running
             motor = self._stats["motor_test_motor"]
-            if self._sink.armed:
-                self._mailbox.stop_motor_test()  # the loop has stopped it already
-                self._running = None
-                text = "Motor test: stopped, vehicle armed"
-            elif time.monotonic_ns() >= until_ns:
+            state = LoopState(self._stats["state"])
+            now = time.monotonic_ns()
+            if now >= until_ns:
                 self._running = None
                 text = "Motor test: done, motors safe"
+            elif state != LoopState.MOTOR_TEST and now - self._started_ns(plan, until_ns) > (
+                MOTOR_TEST_START_GRACE_NS
+            ):
+                self._motor_tests.stop_motor_test()  # the loop has ended it already
+                self._running = None
+                text = "Motor test: stopped, vehicle armed or autopilot lost"
             elif plan.count > 1 and motor and motor != self._reported_motor:
                 self._reported_motor = motor
                 text = f"Motor test: motor {motor}"
             else:
                 return
         self._report(SEVERITY_INFO, text)
+
+    @staticmethod
+    def _started_ns(plan: MotorTestPlan, until_ns: int) -> int:
+        return until_ns - round(plan.total_s * 1e9)
 
     def snapshot(self) -> dict[str, Any] | None:
         """The running test for the health report, or None."""
@@ -230,35 +253,42 @@ class MotorTestControl:
         }
 
 
-class LoopRunner:
-    """Runs the output loop in a process of its own or in a thread of this one."""
+def loop_mode(config: BridgeConfig) -> str:
+    """Where the loop runs: ``[output] loop``, with auto meaning a process of its own for the
+    interfaces several processes can open."""
+    mode = config.output.loop
+    if mode == "auto":
+        return "process" if config.can.interface in SHAREABLE_INTERFACES else "thread"
+    return mode
 
-    def __init__(self, setup: LoopSetup, mailbox: CommandMailbox, stats: LoopStats) -> None:
+
+class LoopRunner:
+    """Runs the control loop in a process of its own or in a thread of this one."""
+
+    def __init__(
+        self,
+        setup: LoopSetup,
+        motor_tests: MotorTestBlock,
+        snapshot: InputSnapshot,
+        stats: LoopStats,
+        relay: socket.socket,
+    ) -> None:
         self._stats = stats
         config = setup.config
-        mode = config.output.loop
-        if mode == "auto":
-            mode = "process" if config.can.interface in SHAREABLE_INTERFACES else "thread"
-        self.mode = mode
-        ctx = multiprocessing.get_context("spawn")
-        self._wake_reader: Connection | None = None
-        self.wake_writer: Connection | None = None
-        if config.output.latency == "immediate":
-            self._wake_reader, self.wake_writer = ctx.Pipe(duplex=False)
-            os.set_blocking(self.wake_writer.fileno(), False)
+        self.mode = mode = loop_mode(config)
         self._process: Any = None
         self._thread: threading.Thread | None = None
         self._loop: OutputLoop | None = None
-        wake_fd = self._wake_reader
+        self._relay = relay
         if mode == "process":
+            ctx = multiprocessing.get_context("spawn")
             self._process = ctx.Process(
                 target=run_in_process,
-                args=(setup, mailbox, stats, wake_fd),
+                args=(setup, motor_tests, snapshot, stats, relay),
                 name="esc-bridge-output",
             )
         else:
-            fd = wake_fd.fileno() if wake_fd is not None else None
-            self._loop = OutputLoop(setup, mailbox, stats, fd)
+            self._loop = OutputLoop(setup, motor_tests, snapshot, stats, relay)
             self._thread = threading.Thread(target=self._run_thread, name="esc-bridge-output")
         self.thread_error: BaseException | None = None
 
@@ -271,7 +301,15 @@ class LoopRunner:
 
     def start(self) -> None:
         if self._process is not None:
-            self._process.start()
+            # The child inherits the blocked signals and unblocks them once its handlers are
+            # in place: a SIGTERM or SIGHUP to the group while it starts is delivered then, and
+            # ends in its shutdown flush instead of killing it half-started.
+            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+            try:
+                self._process.start()
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+            self._relay.close()  # the child has its copy; ours would hide the child's death
         elif self._thread is not None:
             self._thread.start()
 
@@ -279,6 +317,14 @@ class LoopRunner:
         if self._process is not None:
             return bool(self._process.is_alive())
         return self._thread is not None and self._thread.is_alive()
+
+    def wait_for_exit(self, timeout_s: float) -> bool:
+        """Block until the loop ends or ``timeout_s`` passes; True when it ended."""
+        if self._process is not None:
+            return bool(multiprocessing.connection.wait([self._process.sentinel], timeout_s))
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        return not self.alive()
 
     def request_stop(self) -> None:
         self._stats["stop_requested"] = 1  # read by the loop every tick, in a process or thread
@@ -302,6 +348,35 @@ class LoopRunner:
         return None if self._process is None else self._process.exitcode
 
 
+def send_safe_values_after_death(config: BridgeConfig) -> int:
+    """The control loop died: send the safe values from here, the survivor, for
+    ``shutdown_flush_ms`` on a handle of our own; returns the frames sent (0 when the bus cannot
+    be opened: the ESCs' own command timeouts then stop the motors)."""
+    try:
+        bus = open_bus(config.can, config.bitrate)
+    except BridgeError as exc:
+        log.error("cannot send safe values after the output loop died: %s", exc)
+        return 0
+    driver = make_driver(config)
+    period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
+    sent = 0
+
+    def send(frames: list[can.Message]) -> None:
+        nonlocal sent
+        for frame in frames:
+            try:
+                bus.send(frame, timeout=0)
+            except (can.CanError, OSError):
+                continue
+            sent += 1
+
+    try:
+        flush_safe_values(send, driver, period_ns, max(config.output.shutdown_flush_ms, 100))
+    finally:
+        bus.shutdown()
+    return sent
+
+
 class Supervisor:
     """Starts the parts, watches the loop, reports transitions, stops cleanly."""
 
@@ -310,33 +385,43 @@ class Supervisor:
         config = plan.config
         self._config = config
         n = len(plan.mixer.outputs)
-        self.mailbox = CommandMailbox(n)
+        self.motor_tests = MotorTestBlock(n)
+        self.input_snapshot = InputSnapshot(n)
         self.stats = LoopStats()
-        setup = LoopSetup(
-            config=config, mixer=plan.mixer, log_level=logging.getLogger().getEffectiveLevel()
+        valid_range = plan.valid_range
+        # An interface only one handle can open is read through the thread-mode loop's handle.
+        shares_loop_bus = config.can.interface not in SHAREABLE_INTERFACES | {"virtual"} and (
+            loop_mode(config) == "thread"
         )
-        self.runner = LoopRunner(setup, self.mailbox, self.stats)
-        axes = None
-        if config.mixer.axis_channels:
-            channel_range = plan.input_range or PWM_RANGE_US
-            axes = AxisChannels(config.mixer.axis_channels, channel_range)
-        self.sink = MixerSink(Mixer(plan.mixer), self.mailbox, self.runner.wake_writer, axes)
+        setup = LoopSetup(
+            config=config,
+            input=InputSetup(plan.mixer, valid_range, plan.input_range),
+            log_level=logging.getLogger().getEffectiveLevel(),
+            bus_receive="all" if shares_loop_bus else "none",
+        )
+        loop_end, main_end = relay_pair()
+        self.runner = LoopRunner(setup, self.motor_tests, self.input_snapshot, self.stats, loop_end)
+        self.monitor = InputMonitor()
         self.recording = Recording.open(Path(record_dir), config.can) if record_dir else None
         tlog = self.recording.tlog if self.recording is not None else None
-        self.link = MavlinkLink(config.mavlink, self.sink, tlog=tlog)
+        relayed = [MainConnection(main_end)]
+
+        def uplink() -> MainConnection:
+            if not relayed:
+                raise LinkError("the output loop's relay of the autopilot link is gone")
+            return relayed.pop()
+
+        self.link = MavlinkLink(config.mavlink, self.monitor, tlog=tlog, uplink=uplink)
         self.motor_test = MotorTestControl(
             limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
-            self.mailbox,
-            self.sink,
+            config,
+            self.motor_tests,
+            self.input_snapshot,
             self.stats,
             self._report,
             self.link.dialect,
         )
         self.link.add_command_handler(self.motor_test.handle_command)
-        # An interface only one handle can open is read through the thread-mode loop's handle.
-        own_handle = config.can.interface in SHAREABLE_INTERFACES | {"virtual"} or (
-            self.runner.mode == "process"
-        )
         self.fanout = Fanout(
             config,
             EscTable.for_config(config),
@@ -344,9 +429,7 @@ class Supervisor:
             health=self.health,
             actuators_input=self.actuators_input,
             actuators_output=self.actuators_output,
-            shared_bus=None
-            if own_handle or self.runner.mode == "process"
-            else self.runner.loop_bus,
+            shared_bus=self.runner.loop_bus if shares_loop_bus else None,
             recorder=self.recording.can if self.recording is not None else None,
         )
         self._output_ticks = (time.monotonic(), 0)
@@ -372,16 +455,17 @@ class Supervisor:
             self.runner.mode,
             self._plan.load_text,
         )
+        if self._stop.is_set():
+            log.info("stopped before starting: nothing was sent")
+            return 0
         self.link.start()
         try:
             self.runner.start()
             self._await_loop_start()
             self.fanout.start()
-            while not self._stop.wait(SUPERVISE_PERIOD_S):
-                if not self.runner.alive():
-                    self._report(SEVERITY_CRITICAL, "ESC out: FAULT output loop died")
-                    log.error("output loop ended unexpectedly (exit code %s)", self.runner.exitcode)
-                    return 1
+            while not self._stop.is_set():
+                if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
+                    return self._loop_died()
                 self._watch()
             self.runner.request_stop()
             self.runner.join(config.output.shutdown_flush_ms / 1000 + 5.0)
@@ -397,6 +481,22 @@ class Supervisor:
             self.link.close()
             if self.recording is not None:
                 self.recording.close()
+
+    def _loop_died(self) -> int:
+        """The loop ended without being asked: safe values from here, then exit 1 (so that
+        systemd restarts the service)."""
+        state = LoopState(self.stats["state"])
+        sent = 0
+        if state != LoopState.STOPPED:  # it did not get to its own flush
+            sent = send_safe_values_after_death(self._config)
+        log.error(
+            "output loop ended unexpectedly (exit code %s, state %s); sent %d safe frames",
+            self.runner.exitcode,
+            state.name,
+            sent,
+        )
+        self._report(SEVERITY_CRITICAL, "ESC out: FAULT output loop died, motors stopped")
+        return 1
 
     def _await_loop_start(self) -> None:
         deadline = time.monotonic() + LOOP_START_TIMEOUT_S
@@ -424,10 +524,11 @@ class Supervisor:
         """The bridge's health: loop state and rates, failsafe, counters."""
         stats, link = self.stats, self.link.stats
         state = LoopState(stats["state"])
+        seen = self.input_snapshot.read()
         return {
             "state": state.name.lower(),
-            "failsafe": state != LoopState.RUNNING,
-            "armed": self.sink.armed,
+            "failsafe": state not in SENDING_COMMANDS,
+            "armed": seen is not None and seen.armed,
             "motor_test": self.motor_test.snapshot(),
             "output": {
                 "rate_hz": round(self._output_rate_hz, 1),
@@ -442,10 +543,12 @@ class Supervisor:
             },
             "input": {
                 "rate_hz": round(link.output_rate_hz, 1),
-                "outputs": link.outputs,
-                "messages": link.messages,
-                "bad_data": link.bad_data,
-                "mixer_errors": self.sink.mixer_errors,
+                "outputs": stats["input_outputs"],
+                "messages": stats["input_frames"],
+                "bad_data": stats["input_bad_crc"],
+                "invalid": stats["input_invalid"],
+                "mixer_errors": stats["mixer_errors"],
+                "age_ms": round(stats["input_age_us"] / 1000, 1),
             },
             "escs_online": sum(
                 1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online
@@ -455,20 +558,21 @@ class Supervisor:
 
     def actuators_input(self) -> dict[str, Any] | None:
         """What came in: the autopilot's newest outputs (present channels) and their mix."""
-        last = self.sink.last_input
-        if last is None:
+        last = self.monitor.last_input
+        seen = self.input_snapshot.read()
+        if last is None or seen is None:
             return None
-        values, fractions, time_ns = last
+        values, _ = last
         return {
             "source": self._config.mavlink.source,
-            "armed": self.sink.armed,
-            "age_ms": round((time.monotonic_ns() - time_ns) / 1e6, 1),
+            "armed": seen.armed,
+            "age_ms": round((time.monotonic_ns() - seen.produced_ns) / 1e6, 1),
             "channels": {
                 name: value
                 for name, value in zip(INPUT_NAMES, values, strict=False)
                 if value == value  # NaN: channel absent
             },
-            "mixed": fractions,
+            "mixed": list(seen.fractions) if seen.valid else None,
         }
 
     def actuators_output(self) -> dict[str, Any] | None:
@@ -549,13 +653,14 @@ class Supervisor:
         stats = reader.stats
         log.info(
             "CAN in: %d frames read, %d telemetry, %d malformed, %d read errors; "
-            "%d of %d ESCs online",
+            "%d of %d ESCs online; %s dropped by the kernel",
             stats.frames,
             stats.telemetry,
             stats.malformed,
             stats.read_errors,
             sum(1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online),
             len(self.fanout.table),
+            "?" if stats.kernel_drops is None else stats.kernel_drops,
         )
 
     def _report(self, severity: int, text: str) -> None:
@@ -564,22 +669,26 @@ class Supervisor:
         self.link.statustext(severity, text)
 
 
-def run(config: BridgeConfig, record_dir: str | Path | None = None) -> int:
-    """Run the bridge until SIGINT or SIGTERM; returns the process exit code.
+def run(
+    checked: Plan,
+    record_dir: str | Path | None = None,
+    stop_signals: StopSignals | None = None,
+) -> int:
+    """Run the bridge on a checked plan (:func:`bridge.preflight.plan`) until a stop signal;
+    returns the process exit code.
+
+    ``stop_signals``: the command line's, installed before anything else so that none is lost
+    (see :mod:`bridge.stopping`); installed here when not given.
 
     Raises:
-        ConfigError: the configuration is invalid (before anything is sent).
         LinkError: the MAVLink link or the CAN bus could not be opened.
     """
-    supervisor = Supervisor(plan(config), record_dir)
+    stop_signals = stop_signals or StopSignals.install()
+    supervisor = Supervisor(checked, record_dir)
 
-    def on_signal(signum: int, _frame: FrameType | None) -> None:
-        log.info("%s: stopping", signal.Signals(signum).name)
+    def on_signal(sig: signal.Signals) -> None:
+        log.info("%s: stopping", sig.name)
         supervisor.stop()
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return supervisor.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    stop_signals.on_stop(on_signal)
+    return supervisor.run()

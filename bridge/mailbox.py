@@ -1,64 +1,108 @@
-"""Lock-free hand-over between the input side and the output loop, across processes or threads.
+"""Lock-free hand-over between the bridge's two sides, across processes or threads.
 
-The output loop may run in a process of its own (free of the main process's GIL), so the
-mixer's newest command vector, the arming state and a motor test (MAV_CMD_DO_MOTOR_TEST) reach
-it through shared memory rather than a queue: the loop must never wait on the input side, and
-the input side must never wait on the loop. Each block has one writer and is guarded by a
-sequence counter (a seqlock): the writer makes the counter odd, writes, and makes it even
-again; a reader that sees an odd or changed counter reads again. Both sides only copy a few
-dozen bytes, so a retry is rare and cheap, and neither side ever blocks.
+The control loop (its own real-time process where the bus allows it) owns the autopilot link,
+the mixer and the CAN transmit handle; the best-effort side (the main process: commands from
+ground stations, telemetry, logging) must never make it wait, and it must never wait on them.
+What little crosses between them goes through shared memory, one writer per block:
 
-The memory is a ``multiprocessing`` RawArray from the spawn context: it is handed to the loop's
-process when it starts (no named segment to leak) and works the same within one process.
+* :class:`MotorTestBlock`: a MAV_CMD_DO_MOTOR_TEST accepted by the main process, for the loop;
+* :class:`InputSnapshot`: the input the loop acts on (its mix, when the autopilot produced it,
+  the arming state), for the main process's health report and motor-test checks;
+* :class:`LoopStats`: the loop's counters, single 8-byte words.
+
+A block is ``seq | body | CRC-32 of seq and body``. The writer packs all three; a reader copies
+the whole block in one go and accepts the copy only if its CRC matches. A copy taken while a
+write was in progress mixes old and new bytes and fails the check, whatever order the stores
+reached memory in, so the hand-over needs no memory barrier and holds on the weak ordering of
+ARM64 (the Raspberry Pi, the Jetson) as on x86: a reader never sees a new sequence number with
+an old body. (A torn copy passes the check with probability 2^-32; a torn copy needs a reader
+and the writer within the same microsecond, a few times a second at most.) A reader that
+keeps colliding with writes keeps the last good copy it read: a collision never turns into
+"no input" or "disarmed".
+
+The memory is ``multiprocessing`` RawArrays from the spawn context: handed to the loop's
+process when it starts (no named segment to leak), and working the same within one process.
 """
 
 from __future__ import annotations
 
-import enum
 import multiprocessing
 import struct
-from collections.abc import Sequence
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
-# A read that keeps colliding with writes gives up and reports "nothing new" for this tick;
-# the writer finishes within microseconds, so the next tick reads it.
-_READ_ATTEMPTS = 4
+from bridge.safety import LoopState
 
-# Block layout: seq u64, then the body. The body is written only while seq is odd, and seq is
-# made even by a store of its own, so a reader that sees the same even seq before and after
-# reading the body has read one whole write.
+__all__ = [
+    "LATENESS_RING",
+    "STAT_FIELDS",
+    "InputSnapshot",
+    "LoopState",
+    "LoopStats",
+    "MotorTest",
+    "MotorTestBlock",
+    "SharedBlock",
+    "Snapshot",
+]
+
+_READ_ATTEMPTS = 4  # copies tried per read before the last good one is returned
 _SEQ = struct.Struct("<Q")
-_BODY = struct.Struct("<qq")  # input time ns, valid (1) or not (0); the values follow
-_ARMED_BODY = struct.Struct("<qq")  # armed time ns, armed
-# A motor test: first output index, count (0 = none), fraction, start ns, on ns, step ns.
-_TEST_BODY = struct.Struct("<qqdqqq")
-_VALUES_AT = _SEQ.size + _BODY.size
+_CRC = struct.Struct("<I")
 
 
-class LoopState(enum.IntEnum):
-    """What the output loop is sending and why (safe unless RUNNING)."""
+class SharedBlock:
+    """One record of fixed layout (a :mod:`struct` format), one writer, any number of readers,
+    in any processes; see the module docstring for why a CRC rather than a seqlock."""
 
-    STARTING = 0  # the loop has not opened the bus yet
-    NO_INPUT = 1  # no valid input since start
-    DISARMED = 2
-    STALE = 3  # the last valid input is older than the input timeout
-    INVALID = 4  # the newest input had a NaN or infinite value, or the mixer failed
-    RUNNING = 5  # the mixer's commands are sent
-    STOPPING = 6  # shutdown: safe values for shutdown_flush_ms, then exit
-    STOPPED = 7
-    FAILED = 8  # the loop could not start (e.g. the bus did not open)
-    MOTOR_TEST = 9  # disarmed, a motor test runs: one motor at its test throttle, others safe
+    def __init__(self, body_format: str, ctx: Any = None) -> None:
+        ctx = ctx or multiprocessing.get_context("spawn")
+        self._format = body_format
+        self._raw = ctx.RawArray("B", _SEQ.size + struct.calcsize("<" + body_format) + _CRC.size)
+        self._attach()
 
+    def _attach(self) -> None:
+        self._record = struct.Struct("<Q" + self._format)
+        self._crc_at = self._record.size
+        self._buf = memoryview(self._raw).cast("B")
+        self._seq_word = memoryview(self._raw).cast("B")[: _SEQ.size].cast("Q")
+        self._seq = 0
+        self._last: tuple[Any, ...] | None = None  # the reader's last good copy
 
-@dataclass(frozen=True, slots=True)
-class Commands:
-    """The newest command vector as the loop read it."""
+    def __getstate__(self) -> dict[str, Any]:
+        return {"format": self._format, "raw": self._raw}  # views are made again on arrival
 
-    seq: int  # grows with every write; equal seq means nothing new
-    time_ns: int  # time.monotonic_ns() when the input arrived
-    valid: bool  # False: the input or mixer failed; send safe values
-    fractions: tuple[float, ...]  # one per mixer output, in the mixer's [min, max]
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self._format, self._raw = state["format"], state["raw"]
+        self._attach()
+
+    def write(self, *body: Any) -> None:
+        """Publish a new record (the writer's sequence number goes up by one).
+
+        Raises:
+            struct.error: ``body`` does not fit the format.
+        """
+        self._seq += 1
+        buf = self._buf
+        self._record.pack_into(buf, 0, self._seq, *body)
+        _CRC.pack_into(buf, self._crc_at, zlib.crc32(buf[: self._crc_at]))
+
+    def seq(self) -> int:
+        """The sequence number in memory now (one 8-byte load, possibly of a write in
+        progress): cheap, to skip a read when nothing changed. 0 before the first write."""
+        return int(self._seq_word[0])
+
+    def read(self) -> tuple[Any, ...] | None:
+        """``(seq, *body)`` of the newest whole record; the last good one read if every copy
+        collided with a write; None before the first write."""
+        crc_at = self._crc_at
+        for _ in range(_READ_ATTEMPTS):
+            copy = bytes(self._buf)
+            if zlib.crc32(copy[:crc_at]) == _CRC.unpack_from(copy, crc_at)[0]:
+                record: tuple[Any, ...] = self._record.unpack_from(copy)
+                self._last = record
+                return record
+        return self._last  # None before the first write: zeros do not pass the CRC
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,73 +135,24 @@ class MotorTest:
         return self.first + k if k < self.count and into < self.on_ns else -1
 
 
-class CommandMailbox:
-    """The mixer's newest output; written by the input side, read by the output loop."""
+class MotorTestBlock:
+    """MAV_CMD_DO_MOTOR_TEST from the main process to the loop. One writer at a time: callers
+    on several threads hold a lock of their own around the writes."""
+
+    # first output index, count (0 = none), fraction, start ns, on ns, step ns
+    _BODY = "qqdqqq"
 
     def __init__(self, n_outputs: int, ctx: Any = None) -> None:
-        ctx = ctx or multiprocessing.get_context("spawn")
         self.n_outputs = n_outputs
-        self._values = struct.Struct(f"<{n_outputs}d")
-        self._raw = ctx.RawArray("B", _VALUES_AT + self._values.size)
-        self._armed_raw = ctx.RawArray("B", _SEQ.size + _ARMED_BODY.size)
-        self._test_raw = ctx.RawArray("B", _SEQ.size + _TEST_BODY.size)
-        self._attach()
-
-    def _attach(self) -> None:
-        self._buf = memoryview(self._raw).cast("B")
-        self._armed_buf = memoryview(self._armed_raw).cast("B")
-        self._test_buf = memoryview(self._test_raw).cast("B")
-        self._test_words = memoryview(self._test_raw).cast("B").cast("q")  # [0] is its seq
-        self._seq = 0
-        self._armed_seq = 0
-        self._test_seq = 0
-
-    def __getstate__(self) -> dict[str, Any]:
-        # Only the shared arrays travel to the loop's process; views are made again there.
-        return {
-            "n": self.n_outputs,
-            "raw": self._raw,
-            "armed_raw": self._armed_raw,
-            "test_raw": self._test_raw,
-        }
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.n_outputs = state["n"]
-        self._values = struct.Struct(f"<{self.n_outputs}d")
-        self._raw = state["raw"]
-        self._armed_raw = state["armed_raw"]
-        self._test_raw = state["test_raw"]
-        self._attach()
-
-    # -- writer side (the input thread) --------------------------------------------------
-
-    def write(self, fractions: Sequence[float] | None, time_ns: int) -> None:
-        """Publish a new command vector; ``None`` marks the input as invalid (go safe)."""
-        buf = self._buf
-        self._seq += 1  # odd: a write is in progress
-        _SEQ.pack_into(buf, 0, self._seq)
-        _BODY.pack_into(buf, _SEQ.size, time_ns, fractions is not None)
-        if fractions is not None:
-            self._values.pack_into(buf, _VALUES_AT, *fractions)
-        self._seq += 1
-        _SEQ.pack_into(buf, 0, self._seq)
-
-    def write_armed(self, armed: bool, time_ns: int) -> None:
-        buf = self._armed_buf
-        self._armed_seq += 1
-        _SEQ.pack_into(buf, 0, self._armed_seq)
-        _ARMED_BODY.pack_into(buf, _SEQ.size, time_ns, armed)
-        self._armed_seq += 1
-        _SEQ.pack_into(buf, 0, self._armed_seq)
+        self._block = SharedBlock(self._BODY, ctx)
 
     def write_motor_test(
         self, first: int, count: int, fraction: float, start_ns: int, on_ns: int, step_ns: int
     ) -> None:
-        """Start a motor test (replacing any): see :class:`MotorTest`. One writer at a time:
-        callers on several threads hold a lock of their own around this.
+        """Start a motor test (replacing any): see :class:`MotorTest`.
 
         Raises:
-            ValueError: outputs outside the mailbox's, a fraction outside 0..1 (or NaN), or
+            ValueError: outputs outside the block's, a fraction outside 0..1 (or NaN), or
                 times that are not ``0 < on_ns <= step_ns``.
         """
         if not (first >= 0 and count >= 1 and first + count <= self.n_outputs):
@@ -168,67 +163,68 @@ class CommandMailbox:
             raise ValueError(f"fraction={fraction!r}: expected 0..1")
         if not 0 < on_ns <= step_ns:
             raise ValueError(f"on_ns={on_ns!r}, step_ns={step_ns!r}: expected 0 < on <= step")
-        self._write_test(first, count, fraction, start_ns, on_ns, step_ns)
+        self._block.write(first, count, fraction, start_ns, on_ns, step_ns)
 
     def stop_motor_test(self) -> None:
         """End any motor test at once (the loop reads it on its next tick)."""
-        self._write_test(0, 0, 0.0, 0, 1, 1)
-
-    def _write_test(
-        self, first: int, count: int, fraction: float, start_ns: int, on_ns: int, step_ns: int
-    ) -> None:
-        buf = self._test_buf
-        self._test_seq += 1
-        _SEQ.pack_into(buf, 0, self._test_seq)
-        _TEST_BODY.pack_into(buf, _SEQ.size, first, count, fraction, start_ns, on_ns, step_ns)
-        self._test_seq += 1
-        _SEQ.pack_into(buf, 0, self._test_seq)
-
-    # -- reader side (the output loop) ---------------------------------------------------
-
-    def read(self) -> Commands | None:
-        """The newest vector, or None before the first write (or after colliding writes)."""
-        buf = self._buf
-        for _ in range(_READ_ATTEMPTS):
-            (seq,) = _SEQ.unpack_from(buf, 0)
-            if seq == 0:
-                return None
-            if seq & 1:
-                continue
-            time_ns, valid = _BODY.unpack_from(buf, _SEQ.size)
-            values = self._values.unpack_from(buf, _VALUES_AT) if valid else ()
-            if _SEQ.unpack_from(buf, 0)[0] == seq:
-                return Commands(seq, time_ns, bool(valid), values)
-        return None
-
-    def read_armed(self) -> bool:
-        """The autopilot's arming state; False until it has been heard."""
-        buf = self._armed_buf
-        for _ in range(_READ_ATTEMPTS):
-            (seq,) = _SEQ.unpack_from(buf, 0)
-            if seq & 1:
-                continue
-            _, armed = _ARMED_BODY.unpack_from(buf, _SEQ.size)
-            if _SEQ.unpack_from(buf, 0)[0] == seq:
-                return bool(armed)
-        return False
+        self._block.write(0, 0, 0.0, 0, 1, 1)
 
     def read_motor_test(self, last_seq: int) -> MotorTest | None:
         """The motor test written since ``last_seq`` (the ``seq`` of the last one read, 0 at
-        first), or None when nothing new was written (or colliding writes kept it from being
-        read; the next call reads it). The loop calls this every tick: when nothing changed it
-        costs one 8-byte read."""
-        seq: int = self._test_words[0]
-        if seq == last_seq:
+        first), or None when nothing new was written (or a write is in progress: the next call
+        reads it). The loop calls this every tick: when nothing changed it costs one 8-byte
+        load."""
+        if self._block.seq() == last_seq:
             return None
-        buf = self._test_buf
-        for _ in range(_READ_ATTEMPTS):
-            if seq & 1 == 0:
-                body = _TEST_BODY.unpack_from(buf, _SEQ.size)
-                if _SEQ.unpack_from(buf, 0)[0] == seq:
-                    return MotorTest(seq, *body)
-            seq = self._test_words[0]
-        return None
+        record = self._block.read()
+        if record is None or record[0] == last_seq:
+            return None
+        return MotorTest(*record)
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """The input the loop acts on, as the main process read it."""
+
+    seq: int
+    produced_ns: int
+    """When the autopilot produced the newest input (local monotonic ns); 0 = none yet."""
+    valid: bool
+    armed: bool
+    armed_heard_ns: int
+    """When the arming state was last heard (monotonic ns); 0 = never."""
+    fractions: tuple[float, ...]
+    """The mix of the newest input (empty when invalid)."""
+
+
+class InputSnapshot:
+    """The loop's newest input and arming state, for the main process (best-effort reading)."""
+
+    def __init__(self, n_outputs: int, ctx: Any = None) -> None:
+        self.n_outputs = n_outputs
+        self._block = SharedBlock(f"qqqq{n_outputs}d", ctx)
+        self._nan = (float("nan"),) * n_outputs
+
+    def write(
+        self,
+        produced_ns: int,
+        fractions: list[float] | None,
+        armed: bool,
+        armed_heard_ns: int,
+    ) -> None:
+        """From the loop, on each input and arming change."""
+        values = self._nan if fractions is None else fractions
+        self._block.write(produced_ns, fractions is not None, armed, armed_heard_ns, *values)
+
+    def read(self) -> Snapshot | None:
+        """The newest snapshot; None before the loop wrote one."""
+        record = self._block.read()
+        if record is None:
+            return None
+        seq, produced_ns, valid, armed, heard_ns, *values = record
+        return Snapshot(
+            seq, produced_ns, bool(valid), bool(armed), heard_ns, tuple(values) if valid else ()
+        )
 
 
 STAT_FIELDS = (
@@ -244,15 +240,30 @@ STAT_FIELDS = (
     "stop_requested",  # written by the supervisor: the one field the loop only reads
     "lateness_count",  # entries written to the lateness ring
     "motor_test_motor",  # the motor a motor test spins now, 1-based; 0 = none
+    "input_frames",  # MAVLink frames the loop found on the autopilot link
+    "input_outputs",  # motor-output messages from the autopilot it acted on
+    "input_heartbeats",  # HEARTBEATs (arming state) from the autopilot
+    "input_foreign",  # motor outputs or HEARTBEATs from any other system or component
+    "input_bad_crc",  # frames of known messages with a bad CRC
+    "input_junk_bytes",  # bytes skipped while looking for a frame
+    "input_unsigned",  # with a signing key: control messages refused (unsigned, bad, replayed)
+    "input_out_of_order",  # inputs older than the newest one acted on, ignored
+    "input_invalid",  # inputs with an absent, non-finite or out-of-range channel
+    "mixer_errors",  # inputs whose mixing raised: safe values
+    "relay_dropped",  # chunks the main process was too slow to take (best-effort only)
+    "link_sent",  # frames from the main process written to the autopilot link
+    "link_dropped",  # frames for the autopilot link dropped (link down or full)
+    "link_reconnects",
+    "input_age_us",  # age of the newest input when it was acted on (produced -> acted), µs
 )
 LATENESS_RING = 1 << 16  # wake-up lateness samples kept, µs; enough for 160 s at 400 Hz
 
 
 class LoopStats:
-    """Counters the output loop publishes; plain int64 slots, each with a single writer.
+    """Counters the control loop publishes; plain int64 slots, each with a single writer.
 
-    Aligned 8-byte stores are not torn on the platforms we run on, so single counters need
-    no seqlock; the supervisor only samples them for logs, health and benchmarks.
+    Aligned 8-byte stores are single-copy atomic on x86-64 and ARM64, so single counters need
+    no checksum; the supervisor only samples them for logs, health and benchmarks.
     """
 
     def __init__(self, ctx: Any = None) -> None:

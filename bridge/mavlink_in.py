@@ -74,6 +74,8 @@ from pymavlink import mavutil
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError, LinkError
 from bridge.mavlink import load_dialect
+from bridge.mavlink.actuators import decoder_for
+from bridge.mavlink.frames import MAGIC_V2, Frame
 from bridge.mavlink.transport import (
     ACCEPTED_URL_FORMS,
     DEFAULT_BAUD,
@@ -81,7 +83,7 @@ from bridge.mavlink.transport import (
     Transport,
     parse_url,
 )
-from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, INPUT_NAMES
+from bridge.mixer import INPUT_NAMES
 
 __all__ = [
     "ACCEPTED_URL_FORMS",
@@ -106,11 +108,7 @@ CommandHandler = Callable[[Any], int | None]
 INPUT_VECTOR_LEN: Final = len(INPUT_NAMES)
 """36: ``ch1..ch32``, then ``roll, pitch, yaw, thrust`` (the order of ``INPUT_NAMES``)."""
 
-_AXIS_SLOTS: Final = tuple(INPUT_NAMES.index(name) for name in AXIS_NAMES)
 _NAN: Final = math.nan
-_SERVO_PORT_CHANNELS: Final = 16  # SERVO_OUTPUT_RAW carries 16 channels per port
-_SERVO_FIELDS: Final = tuple(f"servo{i}_raw" for i in range(1, _SERVO_PORT_CHANNELS + 1))
-_HIL_CHANNELS: Final = 16
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
 _POLL_S: Final = 0.1  # readers and writers wake at least this often to notice close()
@@ -137,6 +135,8 @@ _SIGNING_EPOCH_S: Final = 1_420_070_400
 _SIGNING_TICKS_PER_S: Final = 100_000
 # A .tlog record: the time it was logged, in µs since the Unix epoch, big-endian, then the frame.
 _TLOG_STAMP: Final = struct.Struct(">Q")
+_HEADER_V1: Final = 6  # bytes before the payload: magic, len, seq, sys, comp, msgid
+_HEADER_V2: Final = 10  # magic, len, incompat, compat, seq, sys, comp, msgid (3 bytes)
 _SERIAL_WRITE_FAILED: Final = -1  # what pymavlink's serial write returns after an exception
 
 
@@ -267,9 +267,24 @@ def _codec_class(dialect: ModuleType) -> Any:
     return Codec
 
 
-def _finite_or_nan(value: float) -> float:
-    """An autopilot's inf is no command: it would saturate the output. Treat it as absent."""
-    return value if math.isfinite(value) else _NAN
+def _frame_of(msg: Any) -> Frame:
+    """A pymavlink message as the frame the shared decoders read (checked by the parser).
+
+    The payload is cut from the message's buffer: pymavlink's ``get_payload()`` of a parsed
+    MAVLink 2 frame starts at the wrong offset."""
+    raw = bytes(msg.get_msgbuf())
+    version = 2 if raw[0] == MAGIC_V2 else 1
+    header = _HEADER_V2 if version == 2 else _HEADER_V1
+    return Frame(
+        msg.get_msgId(),
+        msg.get_srcSystem(),
+        msg.get_srcComponent(),
+        msg.get_seq(),
+        raw[header : header + raw[1]],
+        version,
+        msg.get_signed(),
+        raw,
+    )
 
 
 def _log_sparsely(level: int, count: int, text: str, *args: Any, exc_info: bool = False) -> None:
@@ -322,15 +337,24 @@ class MavlinkLink:
     """
 
     def __init__(
-        self, config: MavlinkConfig, sink: InputSink, tlog: BinaryIO | None = None
+        self,
+        config: MavlinkConfig,
+        sink: InputSink,
+        tlog: BinaryIO | None = None,
+        uplink: Callable[[], Any] | None = None,
     ) -> None:
         """``tlog``: a binary file to record into (see the class docstring), or None.
+        ``uplink``: opens the autopilot's connection (an object with pymavlink's transport
+        methods: ``fd``, ``recv``, ``write``, ``close``); None: pymavlink's transport for
+        ``config.url``. The daemon passes the control loop's relay
+        (:class:`bridge.relay.MainConnection`): the loop owns the real link.
 
         Raises:
             DialectError: the project's MAVLink dialect could not be generated or loaded.
         """
         self._config = config
         self._sink = sink
+        self._open_uplink = uplink
         self._tlog = tlog
         self._tlog_lock = threading.Lock()
         self._autopilot = (config.autopilot_system_id, config.autopilot_component_id)
@@ -353,23 +377,12 @@ class MavlinkLink:
         self._mav: Any = _codec_class(self._dialect)(
             None, srcSystem=config.autopilot_system_id, srcComponent=config.component_id
         )
-        decoders: dict[str, dict[str, Callable[[Any, int], list[float] | None]]] = {
-            "servo_output_raw": {"SERVO_OUTPUT_RAW": self._from_servo_output_raw},
-            "actuator_output_status": {"ACTUATOR_OUTPUT_STATUS": self._from_actuator_output_status},
-            "hil_actuator_controls": {"HIL_ACTUATOR_CONTROLS": self._from_hil_actuator_controls},
-            "actuator_control_target": {
-                "ACTUATOR_CONTROL_TARGET": self._from_actuator_control_target,
-                "SET_ACTUATOR_CONTROL_TARGET": self._from_set_actuator_control_target,
-            },
-        }
-        self._decoders = decoders[config.source]
-        self._output_name = next(iter(self._decoders))
+        # The same decoder the control loop uses (bridge.mavlink.actuators), fed the frame of
+        # each pymavlink message: one implementation of what an output message means.
+        self._decoder = decoder_for(config.source, config.autopilot_system_id, config.component_id)
+        self._output_name = self._decoder.name
         self._output_msg_id: int = getattr(self._dialect, f"MAVLINK_MSG_ID_{self._output_name}")
         self._armed_flag: int = self._dialect.MAV_MODE_FLAG_SAFETY_ARMED
-        # SERVO_OUTPUT_RAW state: channels 1..32 as last received, and per port whether the
-        # other port arrived since this one last did (see _from_servo_output_raw).
-        self._servo = [_NAN] * CHANNEL_COUNT
-        self._other_port_seen = [True, True]
         # Arrival-rate window, owned by the autopilot's reader thread.
         self._window_start_ns = 0
         self._window_count = 0
@@ -429,7 +442,7 @@ class MavlinkLink:
         if self._config.signing_key is not None:
             self._setup_signing(bytes.fromhex(self._config.signing_key))
         uplink = _Connection(endpoint, self.stats, is_autopilot=True)
-        self._install(uplink, self._open(endpoint))
+        self._install(uplink, self._open(endpoint, is_autopilot=True))
         self._uplink = uplink
         self._connections = [uplink]
         self._started = True
@@ -652,8 +665,10 @@ class MavlinkLink:
         now_ticks = time.time_ns() * _SIGNING_TICKS_PER_S // 1_000_000_000
         signing.timestamp = max(0, now_ticks - _SIGNING_EPOCH_S * _SIGNING_TICKS_PER_S)
 
-    def _open(self, endpoint: Endpoint) -> Any:
+    def _open(self, endpoint: Endpoint, is_autopilot: bool = False) -> Any:
         """Open the transport. Raises LinkError."""
+        if is_autopilot and self._open_uplink is not None:
+            return self._open_uplink()
         ids = {
             "source_system": self._config.autopilot_system_id,
             "source_component": self._config.component_id,
@@ -692,8 +707,7 @@ class MavlinkLink:
             connection.conn = conn
             connection.parser = parser
         if connection.is_autopilot:
-            self._servo = [_NAN] * CHANNEL_COUNT
-            self._other_port_seen = [True, True]
+            self._decoder.reset()
         return True
 
     @staticmethod
@@ -717,7 +731,7 @@ class MavlinkLink:
         while not self._stop.wait(delay * random.uniform(0.5, 1.0)):
             attempts += 1
             try:
-                conn = self._open(endpoint)
+                conn = self._open(endpoint, connection.is_autopilot)
             except LinkError as exc:
                 log.debug("reconnect attempt %d failed: %s", attempts, exc)
                 delay = min(delay * 2, _BACKOFF_CAP_S)
@@ -742,6 +756,11 @@ class MavlinkLink:
         while not self._stop.is_set():
             try:
                 lost = self._read_once(connection)
+            except EOFError as exc:
+                # The link's owner ended it for good (the control loop stopped): nothing to
+                # reopen, and no reason for alarm.
+                log.info("MAVLink %s ended: %s", connection.url, exc)
+                return
             except Exception as exc:
                 # pymavlink's robust parser turns malformed input into BAD_DATA, so this is a
                 # fault in the transport or parser; a fresh connection and parser clear it.
@@ -816,8 +835,9 @@ class MavlinkLink:
             return
         if not connection.is_autopilot:
             return  # an output can send commands, never motor outputs or arming
-        decode = self._decoders.get(kind)
-        if decode is None and kind != "HEARTBEAT":
+        msg_id: int = msg.get_msgId()
+        is_output = msg_id in self._decoder.msg_ids
+        if not is_output and kind != "HEARTBEAT":
             return
         sender = (msg.get_srcSystem(), msg.get_srcComponent())
         if sender != self._autopilot:
@@ -828,14 +848,16 @@ class MavlinkLink:
                     "ignoring %s from %d/%d: only %d/%d is obeyed", kind, *sender, *self._autopilot
                 )
             return
-        if decode is None:
+        if not is_output:
             self.stats.last_heartbeat_ns = now
             self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
             return
-        values = decode(msg, now)
-        if values is not None:
+        decoded = self._decoder.decode(_frame_of(msg))
+        if decoded is not None:
             self._note_output(now)
-            self._sink.on_actuators(values, now)
+            if decoded.armed is not None:
+                self._sink.on_armed(decoded.armed, now)
+            self._sink.on_actuators(decoded.values, now)
 
     def _on_command(self, connection: _Connection, msg: Any) -> None:
         """A COMMAND_LONG: pass it to the handler if it is addressed to us, and answer."""
@@ -898,55 +920,6 @@ class MavlinkLink:
                         self._config.stream_rate_hz,
                     )
         self.stats.last_output_ns = now
-
-    # -- output decoders: a message in, a fresh input vector (or None: not a usable output) --
-
-    def _from_servo_output_raw(self, msg: Any, _now: int) -> list[float] | None:
-        port: int = msg.port
-        if port > 1:
-            return None  # ports 2.. would be channels 33..: more than the mixer takes
-        other = 1 - port
-        if not self._other_port_seen[port]:
-            # The other port missed a whole round of this one. ArduPilot stops sending a port
-            # once all its channels are off, so its last values must not be held: absent.
-            start = other * _SERVO_PORT_CHANNELS
-            self._servo[start : start + _SERVO_PORT_CHANNELS] = [_NAN] * _SERVO_PORT_CHANNELS
-        self._other_port_seen[port] = False
-        self._other_port_seen[other] = True
-        base = port * _SERVO_PORT_CHANNELS
-        for i, name in enumerate(_SERVO_FIELDS):
-            raw: int = getattr(msg, name)  # 0 = no output; MAVLink 1 carries servo1..8 only
-            self._servo[base + i] = float(raw) if raw else _NAN
-        return self._servo + [_NAN] * len(AXIS_NAMES)
-
-    def _from_actuator_output_status(self, msg: Any, _now: int) -> list[float] | None:
-        active: int = msg.active
-        values = [
-            _finite_or_nan(value) if active >> i & 1 else _NAN
-            for i, value in enumerate(msg.actuator[:CHANNEL_COUNT])
-        ]
-        return values + [_NAN] * (INPUT_VECTOR_LEN - len(values))
-
-    def _from_hil_actuator_controls(self, msg: Any, now: int) -> list[float] | None:
-        self._sink.on_armed(bool(msg.mode & self._armed_flag), now)
-        values = [_finite_or_nan(value) for value in msg.controls[:_HIL_CHANNELS]]
-        return values + [_NAN] * (INPUT_VECTOR_LEN - len(values))
-
-    def _from_actuator_control_target(self, msg: Any, _now: int) -> list[float] | None:
-        if msg.group_mlx != 0:
-            return None  # group 0 is the flight controls; others are gimbal, payload, ...
-        values = [_NAN] * INPUT_VECTOR_LEN
-        for slot, value in zip(_AXIS_SLOTS, msg.controls, strict=False):
-            values[slot] = _finite_or_nan(value)
-        return values
-
-    def _from_set_actuator_control_target(self, msg: Any, now: int) -> list[float] | None:
-        if msg.target_system not in (0, self._mav.srcSystem) or msg.target_component not in (
-            0,
-            self._config.component_id,
-        ):
-            return None  # a command addressed to another component
-        return self._from_actuator_control_target(msg, now)
 
     # -- heartbeat thread ------------------------------------------------------------------
 

@@ -1,19 +1,25 @@
-"""The output loop: the hot path and the safety path.
+"""The control loop: the hot path and the safety path, autopilot bytes in to CAN frames out.
 
-Every tick it reads the newest commands from the mailbox, decides whether they may be sent
-(armed, fresh, valid, not stopping) and sends either them, rate-limited by the slew limiter, or
-the safe values. While the autopilot is disarmed a motor test from the mailbox (a ground
-station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.motor_test`) takes the place of the safe
-values: one motor at its test throttle, every other one safe, until the test's time is up or
-the autopilot arms, whichever comes first. It sleeps to absolute deadlines on the monotonic
-clock, so it does not drift; a tick it wakes too late for is counted as an overrun and skipped,
-never caught up in a burst.
+One thread, in a process of its own where the bus allows it, with SCHED_FIFO priority when
+permitted, owns everything between the autopilot and the ESCs: the autopilot's link (read and
+decoded by :class:`~bridge.autopilot_input.AutopilotInput`, which mixes each input as it
+arrives), the safety decision (:func:`bridge.safety.decide`) and the CAN transmit handle.
+Nothing else runs there, so nothing else can hold it up: telemetry, Zenoh, logging and ground
+station commands live in the main process, which may stall without consequence.
 
-Nothing here blocks, logs or waits on another part of the bridge: sends are non-blocking and
-a failed one is counted (the bus is reopened with backoff when it is gone), the mailbox and the
-counters are lock-free shared memory, and the supervisor reads the counters to log and report.
-Run in a process of its own (the default where the bus allows it), the loop is also free of the
-main process's GIL; with SCHED_FIFO priority (root or CAP_SYS_NICE) it wakes within tens of µs.
+It waits in ``select`` on the autopilot's link and the relay from the main process until the
+next tick's absolute deadline on the monotonic clock, so it does not drift; a tick it wakes too
+late for is counted as an overrun and skipped, never caught up in a burst. Every tick it sends
+either the newest input's commands, rate-limited by the slew limiter, or the safe values, as
+:func:`~bridge.safety.decide` says; while the autopilot is disarmed a motor test from the main
+process (a ground station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.motor_test`) takes the
+place of the safe values: one motor at its test throttle, every other one safe.
+
+It stops with a flush of safe values for ``shutdown_flush_ms`` when asked (the supervisor's
+``stop_requested``), on SIGTERM, SIGHUP, SIGQUIT or SIGINT, and when the main process dies (its
+end of the relay reads as end of file; its parent id changes). Sends are non-blocking and a
+failed one is counted (the bus is reopened with backoff when it is gone); counters are
+lock-free shared memory that the supervisor samples to log and report.
 """
 
 from __future__ import annotations
@@ -24,25 +30,29 @@ import os
 import random
 import select
 import signal
+import socket
 import time
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 
 import can
 
-from bridge.can_io import is_transient, open_bus
+from bridge.autopilot_input import AutopilotInput, InputSetup
+from bridge.busload import IMMEDIATE_MAX_RATE_FACTOR
+from bridge.can_io import Receive, is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
-from bridge.escs.drivers import make_driver
-from bridge.mailbox import LATENESS_RING, CommandMailbox, LoopState, LoopStats, MotorTest
-from bridge.mixer import MixerDefinition, SlewLimiter
+from bridge.escs.drivers import EscDriver, make_driver
+from bridge.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
+from bridge.mixer import SlewLimiter
 from bridge.motor_test import test_frames
+from bridge.relay import LoopEnd
+from bridge.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 
 log = logging.getLogger(__name__)
 
 REOPEN_BACKOFF_S = (0.1, 2.0)  # first and longest wait before reopening a bus that is gone
-PARENT_CHECK_TICKS = 64  # how often a loop process checks that its supervisor still lives
-IMMEDIATE_MAX_RATE_FACTOR = 2  # latency = "immediate" sends at most this many times the rate
+PARENT_CHECK_TICKS = 64  # how often the loop checks that its supervisor still lives
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGINT)
 
 
 @dataclass(frozen=True)
@@ -50,8 +60,11 @@ class LoopSetup:
     """Everything the loop needs, picklable so it can start a process of its own."""
 
     config: BridgeConfig  # with the ESC lists filled in
-    mixer: MixerDefinition  # the loop applies its slew limits
+    input: InputSetup
     log_level: int = logging.INFO
+    # What the loop's bus handle receives: nothing (it only sends), unless the main process's
+    # reader shares it (thread mode on an interface only one handle can open).
+    bus_receive: Receive = "none"
 
 
 def set_realtime(priority: int) -> bool:
@@ -65,27 +78,126 @@ def set_realtime(priority: int) -> bool:
     return True
 
 
+def safety_limits(config: BridgeConfig) -> SafetyLimits:
+    """The configuration's safety settings in the loop's units."""
+    output = config.output
+    return SafetyLimits(
+        require_armed=output.require_armed,
+        input_timeout_ns=output.input_timeout_ms * 1_000_000,
+        arming_timeout_ns=output.arming_timeout_ms * 1_000_000,
+    )
+
+
+class CommandSelector:
+    """Chooses, each tick, what goes on the bus: the newest input's commands (slew-limited),
+    one motor's test throttle, or the safe values, as :func:`~bridge.safety.decide` says.
+
+    The loop's per-tick safety path, apart from the loop so that a model-based test can drive
+    exactly this code through random sequences of events (``tests/test_safety_model.py``).
+    """
+
+    def __init__(
+        self,
+        driver: EscDriver,
+        slew: SlewLimiter,
+        limits: SafetyLimits,
+        inputs: ControlInputs,
+        n_outputs: int,
+    ) -> None:
+        self.driver = driver
+        self._slew = slew
+        self._limits = limits
+        self._inputs = inputs
+        self._zeros = [0.0] * n_outputs
+        self.state = LoopState.NO_INPUT
+        self.faults = 0
+        """Ticks whose commands could not be encoded: the safe values went out instead."""
+        # The motor test read last, and a vector of zeros but for the motor under test, made
+        # once and updated in place.
+        self._test: MotorTest | None = None
+        self._test_fractions = [0.0] * n_outputs
+        self.test_index = -1
+        """The output a motor test spins now, 0-based; -1 = none."""
+
+    def start_motor_test(self, test: MotorTest) -> None:
+        """A motor test read from the main process (count 0: stop any)."""
+        self._test = test
+        self._inputs.motor_test_until_ns = test.until_ns
+
+    def select(
+        self, tick: int, now_ns: int, fractions: list[float] | None, dt_s: float
+    ) -> list[can.Message]:
+        """The frames for ``tick`` at ``now_ns``; ``fractions``: the newest input's mix (None:
+        none, or invalid); ``dt_s``: the time since the last tick, for the slew limiter."""
+        inputs, limits = self._inputs, self._limits
+        if motor_test_ended(inputs, now_ns, limits):
+            inputs.motor_test_until_ns = 0  # arming (or losing the autopilot) ends it
+        state = decide(inputs, now_ns, limits)
+        if state != self.state:
+            if state == LoopState.RUNNING:
+                self._slew.reset(self._zeros)  # after any safe spell, spool up from stopped
+            if self.state == LoopState.MOTOR_TEST:
+                self._spin(-1)
+            self.state = state
+        driver = self.driver
+        try:
+            if state == LoopState.MOTOR_TEST and self._test is not None:
+                index = self._test.index_at(now_ns)
+                self._spin(index)
+                if index >= 0:
+                    return test_frames(driver, tick, self._test_fractions, index)
+            elif state == LoopState.RUNNING and fractions is not None:
+                return driver.tick_frames(tick, self._slew.apply(fractions, dt_s))
+        # Any fault in slewing or encoding means safe values this tick, never a dead loop.
+        except Exception:  # noqa: BLE001
+            self.faults += 1
+        return driver.safe_frames(tick)
+
+    def _spin(self, index: int) -> None:
+        """Make ``index`` the motor under test (-1: none), the others at 0."""
+        if index != self.test_index:
+            if self.test_index >= 0:
+                self._test_fractions[self.test_index] = 0.0
+            self.test_index = index
+        if index >= 0 and self._test is not None:
+            self._test_fractions[index] = self._test.fraction
+
+
 class OutputLoop:
-    """One output loop over one bus. :meth:`run` returns after the shutdown flush."""
+    """The control loop over one autopilot link and one bus. :meth:`run` returns after the
+    shutdown flush."""
 
     def __init__(
         self,
         setup: LoopSetup,
-        mailbox: CommandMailbox,
+        motor_tests: MotorTestBlock,
+        snapshot: InputSnapshot,
         stats: LoopStats,
-        wake_fd: int | None,
+        relay: socket.socket | None,
+        watch_parent: bool = False,
     ) -> None:
+        """``watch_parent``: stop when the parent process goes (the loop's own process)."""
         config = setup.config
         self._config = config
-        self._mailbox = mailbox
+        self._watch_parent = watch_parent
+        self._bus_receive = setup.bus_receive
+        self._motor_tests = motor_tests
         self._stats = stats
-        self._wake_fd = wake_fd if config.output.latency == "immediate" else None
-        self._driver = make_driver(config)
-        self._slew = SlewLimiter.for_definition(setup.mixer)
-        self._zeros = [0.0] * len(setup.mixer.outputs)
-        self._period_ns = round(1e9 / (config.rate_hz * self._driver.ticks_per_cycle))
-        self._timeout_ns = config.output.input_timeout_ms * 1_000_000
+        driver = make_driver(config)
+        self._period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
         self._flush_ns = config.output.shutdown_flush_ms * 1_000_000
+        self._inputs = ControlInputs()
+        self._selector = CommandSelector(
+            driver,
+            SlewLimiter.for_definition(setup.input.mixer),
+            safety_limits(config),
+            self._inputs,
+            len(setup.input.mixer.outputs),
+        )
+        self._relay = LoopEnd(relay) if relay is not None else None
+        self._input = AutopilotInput(
+            config, setup.input, self._inputs, stats, snapshot, self._relay
+        )
         self._bus: can.BusABC | None = None
         self._reopen_at_ns = 0
         self._backoff_s = REOPEN_BACKOFF_S[0]
@@ -100,11 +212,19 @@ class OutputLoop:
         self._stats["stop_requested"] = 1
 
     def run(self) -> None:
+        """Open the bus and the autopilot's link, loop until stopped, flush, close.
+
+        Raises:
+            BridgeError: the bus or the link could not be opened (state FAILED).
+        """
         stats = self._stats
         try:
-            self._bus = open_bus(self._config.can, self._config.bitrate)
+            self._bus = self._open_bus()
+            self._input.open()
         except BridgeError:
             stats["state"] = LoopState.FAILED
+            if self._bus is not None:
+                self._bus.shutdown()
             raise
         stats["realtime"] = set_realtime(self._config.output.realtime_priority)
         # The loop allocates nothing that needs the cycle collector; a collection pass in the
@@ -117,6 +237,9 @@ class OutputLoop:
         finally:
             gc.enable()
             stats["state"] = LoopState.STOPPED
+            self._input.close()
+            if self._relay is not None:
+                self._relay.close()
             if self._bus is not None:
                 self._bus.shutdown()
 
@@ -129,106 +252,67 @@ class OutputLoop:
         lateness_count_i, stop_i = slot("lateness_count"), slot("stop_requested")
         tick_errors_i, test_motor_i = slot("tick_errors"), slot("motor_test_motor")
         lateness = self._stats.lateness_ring
-        mailbox, driver, slew = self._mailbox, self._driver, self._slew
-        require_armed = self._config.output.require_armed
-        period_ns, timeout_ns = self._period_ns, self._timeout_ns
+        selector, inputs = self._selector, self._inputs
+        motor_tests, input_side, relay = self._motor_tests, self._input, self._relay
+        period_ns = self._period_ns
         min_gap_ns = period_ns // IMMEDIATE_MAX_RATE_FACTOR
         keepalive_ns = period_ns * 3 // 2
-        wake_fd = self._wake_fd
-        monotonic_ns, sleep = time.monotonic_ns, time.sleep
-        parent = os.getppid()
-        # A motor test (MAV_CMD_DO_MOTOR_TEST): the newest one read and when it ends; a vector
-        # of zeros but for the motor under test, made once and updated in place.
-        test: MotorTest | None = None
-        test_seq = test_until_ns = 0
-        test_index = -1
-        test_fractions = [0.0] * len(self._zeros)
-
-        state = LoopState.NO_INPUT
-        counters[state_i] = state
+        immediate = self._config.output.latency == "immediate"
+        monotonic_ns, wait = time.monotonic_ns, select.select
+        parent = os.getppid() if self._watch_parent else 0
+        relay_fd = relay.fileno() if relay is not None else -1
+        test_seq = 0  # the newest motor test read (MAV_CMD_DO_MOTOR_TEST)
+        counters[state_i] = selector.state
         stop_at_ns = 0
         tick = 0
+        input_tick = False
         last_ns = next_ns = monotonic_ns()
         while True:
-            input_tick = False
+            # Wait for input, a frame to relay or the tick, whichever comes first.
             delay_ns = next_ns - monotonic_ns()
-            if wake_fd is not None:
-                while delay_ns > 0 and select.select([wake_fd], [], [], delay_ns / 1e9)[0]:
-                    os.read(wake_fd, 4096)
-                    # Fresh input goes out now, or as soon as the frame-rate cap allows: never
-                    # within min_gap of the last frame, so an input flood cannot flood the bus.
-                    next_ns = min(next_ns, max(monotonic_ns(), last_ns + min_gap_ns))
-                    input_tick = True
-                    delay_ns = next_ns - monotonic_ns()
-            elif delay_ns > 0:
-                sleep(delay_ns / 1e9)
-            now = monotonic_ns()
+            if delay_ns > 0:
+                link_fd = input_side.fd
+                readers = [fd for fd in (link_fd, relay_fd) if fd is not None and fd >= 0]
+                writers = [link_fd] if link_fd is not None and input_side.wants_write else []
+                ready = wait(readers, writers, (), delay_ns / 1e9)[0]
+                now = monotonic_ns()
+                if ready:
+                    if link_fd in ready and input_side.on_readable(now) and immediate:
+                        # Fresh input goes out now, or as soon as the frame-rate cap allows:
+                        # never within min_gap of the last frame, so an input flood cannot
+                        # flood the bus.
+                        next_ns = min(next_ns, max(now, last_ns + min_gap_ns))
+                        input_tick = True
+                    if relay_fd in ready:
+                        try:
+                            input_side.on_relay()
+                        except EOFError:
+                            relay_fd = -1  # the main process is gone: stop below
+                            if not stop_at_ns:
+                                stop_at_ns = now + self._flush_ns
+                input_side.service(now)
+                if now < next_ns:
+                    continue
+            else:
+                now = monotonic_ns()
             n = counters[lateness_count_i]
             lateness[n % LATENESS_RING] = (now - next_ns) // 1000
             counters[lateness_count_i] = n + 1
 
             if not stop_at_ns and (
-                counters[stop_i] or (tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
+                counters[stop_i]
+                or (parent and tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
             ):
                 stop_at_ns = now + self._flush_ns
-            commands = mailbox.read()
-            fresh_test = mailbox.read_motor_test(test_seq)  # the one extra read per tick
+            inputs.stopping = stop_at_ns != 0
+            fresh_test = motor_tests.read_motor_test(test_seq)  # one 8-byte load if unchanged
             if fresh_test is not None:
-                test, test_seq, test_until_ns = fresh_test, fresh_test.seq, fresh_test.until_ns
-            testing = False
-            if now < test_until_ns:
-                if mailbox.read_armed():
-                    test_until_ns = 0  # arming ends a motor test for good, at once
-                else:
-                    testing = True
-            if stop_at_ns:
-                new_state = LoopState.STOPPING
-            elif testing:
-                new_state = LoopState.MOTOR_TEST
-            elif commands is None:
-                new_state = LoopState.NO_INPUT
-            elif require_armed and not mailbox.read_armed():
-                new_state = LoopState.DISARMED
-            elif now - commands.time_ns > timeout_ns:
-                new_state = LoopState.STALE
-            elif not commands.valid:
-                new_state = LoopState.INVALID
-            else:
-                new_state = LoopState.RUNNING
-            if new_state != state:
-                if new_state == LoopState.RUNNING:
-                    slew.reset(self._zeros)  # after any safe spell, spool up from stopped
-                if state == LoopState.MOTOR_TEST and test_index >= 0:
-                    test_fractions[test_index] = 0.0
-                    test_index = -1
-                    counters[test_motor_i] = 0
-                state = new_state
-                counters[state_i] = state
-
-            frames = None
-            if state == LoopState.MOTOR_TEST and test is not None:
-                index = test.index_at(now)
-                if index != test_index:
-                    if test_index >= 0:
-                        test_fractions[test_index] = 0.0
-                    test_index = index
-                    counters[test_motor_i] = index + 1
-                if index >= 0:
-                    test_fractions[index] = test.fraction
-                    try:
-                        frames = test_frames(driver, tick, test_fractions, index)
-                    except Exception:  # noqa: BLE001 - as below: safe values this tick
-                        counters[tick_errors_i] += 1
-            elif state == LoopState.RUNNING and commands is not None:
-                try:
-                    frames = driver.tick_frames(
-                        tick, slew.apply(commands.fractions, (now - last_ns) / 1e9)
-                    )
-                # Any fault in mixing or encoding means safe values this tick, never a dead loop.
-                except Exception:  # noqa: BLE001
-                    counters[tick_errors_i] += 1
-            if frames is None:
-                frames = driver.safe_frames(tick)
+                test_seq = fresh_test.seq
+                selector.start_motor_test(fresh_test)
+            frames = selector.select(tick, now, input_side.fractions, (now - last_ns) / 1e9)
+            counters[state_i] = selector.state
+            counters[test_motor_i] = selector.test_index + 1
+            counters[tick_errors_i] = selector.faults
             counters[sent_i] += self._send(frames, now)
             counters[ticks_i] += 1
             last_ns = now
@@ -239,6 +323,7 @@ class OutputLoop:
             if input_tick:
                 # Re-phased to the input: the fixed tick becomes a keep-alive that fires only
                 # when the next input is late, so it never races an input arriving on time.
+                input_tick = False
                 counters[immediate_i] += 1
                 next_ns = now + keepalive_ns
                 continue
@@ -272,9 +357,12 @@ class OutputLoop:
             sent += 1
         return sent
 
+    def _open_bus(self) -> can.BusABC:
+        return open_bus(self._config.can, self._config.bitrate, receive=self._bus_receive)
+
     def _reopen(self) -> can.BusABC | None:
         try:
-            self._bus = open_bus(self._config.can, self._config.bitrate)
+            self._bus = self._open_bus()
         except BridgeError:
             wait_s = self._backoff_s * (0.5 + random.random())  # jitter: no lock-step retries
             self._backoff_s = min(self._backoff_s * 2, REOPEN_BACKOFF_S[1])
@@ -286,17 +374,23 @@ class OutputLoop:
 
 
 def run_in_process(
-    setup: LoopSetup, mailbox: CommandMailbox, stats: LoopStats, wake: Connection | None
+    setup: LoopSetup,
+    motor_tests: MotorTestBlock,
+    snapshot: InputSnapshot,
+    stats: LoopStats,
+    relay: socket.socket | None,
 ) -> None:
-    """Entry point of the loop's own process (spawned by the supervisor)."""
+    """Entry point of the loop's own process (spawned by the supervisor with the stop signals
+    blocked, so that none can kill it before its handlers are in place)."""
+    loop = OutputLoop(setup, motor_tests, snapshot, stats, relay, watch_parent=True)
+    for signum in STOP_SIGNALS:
+        # Any of them, to this process alone or to the whole group (a closed terminal, Ctrl-C,
+        # systemd), ends in the shutdown flush.
+        signal.signal(signum, lambda _signum, _frame: loop.request_stop())
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     logging.basicConfig(
         level=setup.log_level, format="%(asctime)s %(levelname)s esc-bridge[output] %(message)s"
     )
-    # Ctrl-C reaches the whole process group; the supervisor decides when the loop stops, and
-    # SIGTERM sent to this process alone still ends in the shutdown flush.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    loop = OutputLoop(setup, mailbox, stats, wake.fileno() if wake is not None else None)
-    signal.signal(signal.SIGTERM, lambda _signum, _frame: loop.request_stop())
     try:
         loop.run()
     except BridgeError as exc:

@@ -13,16 +13,23 @@ import sys
 from collections.abc import Sequence
 
 from bridge import __version__
-from bridge.cli import decode, demo, esc, monitor, run, sim
 from bridge.cli._common import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from bridge.errors import BridgeError, ConfigError
+from bridge.stopping import StopSignals
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Before anything else (the subcommands' imports take a few hundred ms): a SIGTERM or
+    # SIGHUP in that time must end `run` in its safe flush, not kill it on the spot.
+    stop = StopSignals.install()
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "run":
+        args.stop = stop
+    else:
+        stop.release()
     try:
         result: int = args.handler(args)
     except ConfigError as exc:
@@ -45,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    from bridge.cli import decode, demo, esc, monitor, run, sim  # after main's first line
+
     decode.add_parser(commands)
     run.add_parser(commands)
     monitor.add_parser(commands)

@@ -220,4 +220,4 @@ def _run(args: argparse.Namespace) -> int:
         for line in checked.passed:
             print(f"  {line}")
         return EXIT_OK
-    return daemon.run(config, record_dir=args.record)
+    return daemon.run(checked, record_dir=args.record, stop_signals=args.stop)

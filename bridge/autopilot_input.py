@@ -1,0 +1,236 @@
+"""The control loop's input side: the autopilot's link, read where the CAN frames are sent.
+
+The control loop owns the autopilot's MAVLink transport (non-blocking,
+:mod:`bridge.mavlink.transport`), so nothing in the main process (telemetry, Zenoh, logging, a
+CAN reader under a flood, a garbage collection) can delay an input or make a fresh one look old.
+For every chunk read it:
+
+* finds the frames (:class:`~bridge.mavlink.frames.FrameScanner`: a few µs per frame, no
+  pymavlink parser) and keeps those of the configured autopilot (system and component), signed
+  with the configured key when there is one;
+* takes the arming state from its HEARTBEAT (and HIL_ACTUATOR_CONTROLS' mode), stamped with
+  the kernel's receive time;
+* decodes the configured motor-output message into the input vector, dates it by the
+  autopilot's own clock (:class:`~bridge.mavlink.clock.AutopilotClock`: a packet that sat in a
+  buffer is known to be old) and mixes it, refusing NaN, infinite and out-of-range channels;
+* relays the chunk, untouched, to the main process (:mod:`bridge.relay`), which handles
+  everything else the autopilot sends and records it.
+
+It writes to the link what the main process relays the other way. Nothing here blocks or logs
+per frame: counters go to :class:`~bridge.mailbox.LoopStats`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from bridge.config import BridgeConfig
+from bridge.mailbox import InputSnapshot, LoopStats
+from bridge.mavlink import load_dialect
+from bridge.mavlink.actuators import HEARTBEAT_ID, decoder_for, heartbeat_armed
+from bridge.mavlink.clock import AutopilotClock
+from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
+from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
+from bridge.mixer import PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition
+from bridge.relay import LoopEnd
+from bridge.safety import ControlInputs
+
+# Chunks read per wake-up at most, so a flood on the link cannot hold a tick off for long.
+MAX_READS_PER_WAKE = 16
+MAX_RELAYED_FRAMES_PER_WAKE = 64
+
+
+@dataclass(frozen=True)
+class InputSetup:
+    """What the input side needs besides the configuration, picklable."""
+
+    mixer: MixerDefinition
+    valid_range: tuple[float, float]
+    channel_range: tuple[float, float] | None  # for axis_channels; None: the mixer's (PWM)
+
+
+class AutopilotInput:
+    """Reads the autopilot's link and keeps :class:`~bridge.safety.ControlInputs` current.
+
+    Use :meth:`open` once, then :meth:`on_readable` when :attr:`fd` polls readable,
+    :meth:`on_relay` when the relay does, :meth:`service` every wake-up, :meth:`close` at the end.
+    """
+
+    def __init__(
+        self,
+        config: BridgeConfig,
+        setup: InputSetup,
+        inputs: ControlInputs,
+        stats: LoopStats,
+        snapshot: InputSnapshot,
+        relay: LoopEnd | None,
+    ) -> None:
+        mavlink = config.mavlink
+        self._endpoint = parse_url(mavlink.url)
+        self._inputs = inputs
+        self._stats = stats
+        self._counters = stats.counters
+        self._snapshot = snapshot
+        self._relay = relay
+        self._autopilot = (mavlink.autopilot_system_id, mavlink.autopilot_component_id)
+        # With a key, only signed, fresh control messages count (the guard checks the
+        # signature before it touches the replay state).
+        self._guard = (
+            ReplayGuard(bytes.fromhex(mavlink.signing_key), signing_timestamp(time.time_ns()))
+            if mavlink.signing_key
+            else None
+        )
+        self._decoder = decoder_for(
+            mavlink.source, mavlink.autopilot_system_id, mavlink.component_id
+        )
+        self._clock = AutopilotClock(time_bits=64)
+        self._clock_bits = 0  # the width of the clock built, set on the first input
+        self._scanner = FrameScanner.for_dialect(load_dialect())
+        self._mixer = Mixer(setup.mixer, setup.valid_range)
+        self._axes = (
+            AxisChannels(mavlink_axes, setup.channel_range or PWM_RANGE_US)
+            if (mavlink_axes := config.mixer.axis_channels)
+            else None
+        )
+        self._transport: AutopilotTransport | None = None
+        self.fractions: list[float] | None = None
+        """The mix of the newest input; None while there is none or it is invalid."""
+        slot = stats.slot
+        self._i_frames, self._i_outputs = slot("input_frames"), slot("input_outputs")
+        self._i_heartbeats, self._i_foreign = slot("input_heartbeats"), slot("input_foreign")
+        self._i_unsigned, self._i_order = slot("input_unsigned"), slot("input_out_of_order")
+        self._i_invalid, self._i_mixer = slot("input_invalid"), slot("mixer_errors")
+        self._i_relay_dropped, self._i_age = slot("relay_dropped"), slot("input_age_us")
+        self._i_sent, self._i_dropped = slot("link_sent"), slot("link_dropped")
+
+    def open(self) -> None:
+        """Open the autopilot's transport.
+
+        Raises:
+            LinkError: the link cannot be opened and will not get better by waiting (an
+                address in use, an unknown host).
+        """
+        self._transport = open_transport(self._endpoint)
+
+    @property
+    def fd(self) -> int | None:
+        """The descriptor to poll for input now; None while the link is down."""
+        return None if self._transport is None else self._transport.fileno()
+
+    @property
+    def wants_write(self) -> bool:
+        return self._transport is not None and self._transport.wants_write()
+
+    def service(self, now_ns: int) -> None:
+        """Progress connects and pending writes; cheap when there is nothing to do."""
+        transport = self._transport
+        if transport is not None:
+            transport.service(now_ns)
+            self._counters[self._stats.slot("link_reconnects")] = transport.stats.reconnects
+
+    def on_readable(self, now_ns: int) -> bool:
+        """Read what is waiting; True when a new input was acted on."""
+        transport = self._transport
+        if transport is None:
+            return False
+        fresh = False
+        for _ in range(MAX_READS_PER_WAKE):
+            chunk = transport.recv()
+            if chunk is None:
+                break
+            data, received_ns = chunk
+            if self._relay is not None and not self._relay.forward(received_ns, data):
+                self._counters[self._i_relay_dropped] += 1
+            for frame in self._scanner.feed(data):
+                fresh |= self._on_frame(frame, received_ns, now_ns)
+        scanner, counters = self._scanner, self._counters
+        counters[self._i_frames] = scanner.frames
+        counters[self._stats.slot("input_bad_crc")] = scanner.bad_crc
+        counters[self._stats.slot("input_junk_bytes")] = scanner.junk_bytes
+        return fresh
+
+    def on_relay(self) -> None:
+        """Write to the autopilot the frames the main process relayed.
+
+        Raises:
+            EOFError: the main process is gone.
+        """
+        relay, transport = self._relay, self._transport
+        if relay is None:
+            return
+        counters = self._counters
+        for _ in range(MAX_RELAYED_FRAMES_PER_WAKE):
+            frame = relay.take()
+            if frame is None:
+                return
+            if transport is not None and transport.send(frame):
+                counters[self._i_sent] += 1
+            else:
+                counters[self._i_dropped] += 1
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+    def _on_frame(self, frame: Frame, received_ns: int, now_ns: int) -> bool:
+        msg_id = frame.msg_id
+        is_heartbeat = msg_id == HEARTBEAT_ID
+        if not is_heartbeat and msg_id not in self._decoder.msg_ids:
+            return False
+        counters = self._counters
+        if (frame.sys_id, frame.comp_id) != self._autopilot:
+            counters[self._i_foreign] += 1
+            return False
+        if self._guard is not None and not self._guard.accept(frame):
+            counters[self._i_unsigned] += 1
+            return False
+        inputs = self._inputs
+        if is_heartbeat:
+            armed = heartbeat_armed(frame)
+            if armed is not None:
+                counters[self._i_heartbeats] += 1
+                self._set_armed(armed, received_ns)
+            return False
+        decoded = self._decoder.decode(frame)
+        if decoded is None:
+            return False
+        if decoded.armed is not None:
+            self._set_armed(decoded.armed, received_ns)
+        if decoded.time_bits != self._clock_bits:
+            self._clock = AutopilotClock(time_bits=decoded.time_bits)
+            self._clock_bits = decoded.time_bits
+        produced_ns = self._clock.produced_ns(decoded.time_us, received_ns)
+        if inputs.have_input and produced_ns < inputs.input_produced_ns:
+            counters[self._i_order] += 1  # overtaken on the way: the newer one stands
+            return False
+        counters[self._i_outputs] += 1
+        values = decoded.values
+        if self._axes is not None:
+            self._axes.fill(values)
+        try:
+            fractions = self._mixer.mix(values, inputs.armed)
+        except Exception:  # noqa: BLE001 - any mixer fault must become safe values, never a crash
+            counters[self._i_mixer] += 1
+            fractions = None
+        else:
+            if fractions is None:
+                counters[self._i_invalid] += 1
+        self.fractions = fractions
+        inputs.have_input = True
+        inputs.input_valid = fractions is not None
+        inputs.input_produced_ns = produced_ns
+        counters[self._i_age] = (now_ns - produced_ns) // 1000
+        self._snapshot.write(produced_ns, fractions, inputs.armed, inputs.armed_heard_ns)
+        return True
+
+    def _set_armed(self, armed: bool, heard_ns: int) -> None:
+        inputs = self._inputs
+        changed = armed != inputs.armed
+        inputs.armed = armed
+        inputs.armed_heard_ns = max(inputs.armed_heard_ns, heard_ns)
+        if changed:
+            self._snapshot.write(
+                inputs.input_produced_ns, self.fractions, armed, inputs.armed_heard_ns
+            )
