@@ -7,6 +7,8 @@ interface with hop_limit 0 (TTL 0): the frames never leave this machine.
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
 import os
 import signal
 import socket
@@ -219,8 +221,33 @@ class Daemon:
             stderr=subprocess.STDOUT,
             text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            # A process group of its own: a test can signal the whole bridge (as a closing
+            # terminal does) without signalling pytest.
+            start_new_session=True,
         )
         self.output = ""
+
+    def children(self) -> list[int]:
+        """The daemon's child processes (the output loop's, in process mode)."""
+        try:
+            text = Path(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children").read_text()
+        except OSError:
+            return []
+        return [int(pid) for pid in text.split()]
+
+    def loop_pid(self, timeout_s: float = 15.0) -> int:
+        """The output loop's process (the one spawned child that runs the bridge)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for pid in self.children():
+                try:
+                    cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+                except OSError:
+                    continue
+                if b"spawn_main" in cmdline:
+                    return pid
+            time.sleep(0.05)
+        raise AssertionError("no output loop process found")
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
         if self.proc.poll() is None:
@@ -288,3 +315,82 @@ def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Dae
     yield start
     for daemon in started:
         daemon.stop()
+
+
+def _stream_outputs(
+    port: int, pwm: list[int], rate_hz: float, priority: int, control: Any, stop: Any
+) -> None:
+    """The body of :class:`RealtimeAutopilot`'s process."""
+    with contextlib.suppress(PermissionError, OSError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    conn: Any = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+    )
+    mav = conn.mav
+    values = (list(pwm) + [0] * 16)[:16]
+    extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
+    period_ns = round(1e9 / rate_hz)
+    next_ns = time.monotonic_ns()
+    next_beat_ns = next_ns
+    largest_gap_ns = last_ns = 0
+    while not stop.is_set():
+        now = time.monotonic_ns()
+        if control[1] and now >= next_beat_ns:  # heartbeats on
+            base_mode = mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            if control[0]:
+                base_mode |= mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_QUADROTOR,
+                mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                base_mode,
+                0,
+                mavutil.mavlink.MAV_STATE_ACTIVE,
+            )
+            next_beat_ns = now + 1_000_000_000
+        if control[2]:  # outputs on
+            mav.servo_output_raw_send((now // 1000) & 0xFFFFFFFF, 0, *values[:8], **extensions)
+            if last_ns:
+                largest_gap_ns = max(largest_gap_ns, now - last_ns)
+            last_ns = now
+        control[3] = largest_gap_ns // 1000
+        next_ns += period_ns
+        delay = next_ns - time.monotonic_ns()
+        if delay > 0:
+            time.sleep(delay / 1e9)
+    conn.close()
+
+
+class RealtimeAutopilot:
+    """An autopilot in a process of its own at SCHED_FIFO (where permitted), as a flight
+    controller is: SERVO_OUTPUT_RAW at ``rate_hz`` on absolute deadlines and a HEARTBEAT a
+    second, armed. Its sends keep their rhythm on a loaded machine, so a safe frame from the
+    bridge while it streams is the bridge's fault."""
+
+    def __init__(self, port: int, pwm: list[int], rate_hz: float = 200.0) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        # armed, heartbeats on, outputs on, the largest gap between two sends (µs)
+        self._control = ctx.RawArray("q", [1, 1, 1, 0])
+        self._stop = ctx.Event()
+        self._process = ctx.Process(
+            target=_stream_outputs,
+            args=(port, pwm, rate_hz, 60, self._control, self._stop),
+            name="rt-autopilot",
+            daemon=True,
+        )
+        self._process.start()
+
+    @property
+    def largest_gap_ms(self) -> float:
+        return float(self._control[3]) / 1000
+
+    def heartbeats(self, on: bool) -> None:
+        self._control[1] = int(on)
+
+    def outputs(self, on: bool) -> None:
+        self._control[2] = int(on)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._process.join(5)
+        if self._process.is_alive():
+            self._process.kill()

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from bridge import daemon
+from bridge import preflight
 from bridge.busload import bus_load, frame_bits
 from bridge.cli import build_parser as _parser
 from bridge.cli.run import run_config
@@ -32,7 +32,7 @@ def test_every_key_is_documented_with_its_default() -> None:
 @pytest.mark.parametrize("path", EXAMPLES, ids=[p.name for p in EXAMPLES])
 def test_shipped_examples_are_valid(path: Path) -> None:
     config = build_config(read_config_file(path), str(path))
-    checked = daemon.plan(config)
+    checked = preflight.plan(config)
     assert checked.config.escs.ids  # filled in
     assert "bus load" in checked.load_text
 
@@ -90,7 +90,7 @@ def test_bus_load_above_ceiling_is_refused_with_numbers() -> None:
         "can": {"bitrate": 250_000},
     }
     with pytest.raises(ConfigError, match=r"bus load \d+\.\d% of 250 kbit/s.*exceeds the ceiling"):
-        daemon.plan(build_config(raw, "v.toml"))
+        preflight.plan(build_config(raw, "v.toml"))
 
 
 def test_bus_load_arithmetic() -> None:

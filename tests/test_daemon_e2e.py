@@ -16,14 +16,18 @@ import pytest
 from conftest import Autopilot, Daemon, Observer
 from pymavlink import mavutil
 
+from bridge.errors import CodecError
 from bridge.escs import ckesc, ft
 
 ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
 
 
 def ckesc_throttles(msg: can.Message) -> tuple[int, ...] | None:
-    """The throttles of a CKESC throttle frame, or None for any other frame."""
-    frame = ckesc.decode(msg)
+    """The throttles of a CKESC throttle frame, or None for any other frame (junk included)."""
+    try:
+        frame = ckesc.decode(msg)
+    except CodecError:
+        return None
     if frame is None or not isinstance(
         frame.message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
     ):
@@ -31,10 +35,15 @@ def ckesc_throttles(msg: can.Message) -> tuple[int, ...] | None:
     return frame.message.throttles
 
 
-def expect_throttles(observer: Observer, want: tuple[int, ...], timeout_s: float = 3.0) -> float:
-    """Wait for a throttle frame whose leading values are ``want``; returns its time."""
+def expect_throttles(
+    observer: Observer, want: tuple[int, ...], timeout_s: float = 3.0, after: float = 0.0
+) -> float:
+    """Wait for a throttle frame seen at or after ``after`` whose leading values are ``want``;
+    returns its time."""
     ts, _ = observer.wait_for(
-        lambda m: (t := ckesc_throttles(m)) is not None and t[: len(want)] == want, timeout_s
+        lambda m: (t := ckesc_throttles(m)) is not None and t[: len(want)] == want,
+        timeout_s,
+        after,
     )
     return ts
 
@@ -137,7 +146,7 @@ def test_stale_input_goes_safe_within_timeout(
     expect_throttles(observer, (1200, 1200, 1200, 1200), ARM_TIMEOUT_S)
     autopilot.pause_outputs()  # heartbeats go on: armed, but the output stream is stale
     stopped_at = time.monotonic()
-    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0, after=stopped_at)
     # input_timeout_ms 100 + 2 periods of 2.5 ms, plus up to one 20 ms input period and a
     # generous allowance for loopback and scheduling on a busy test machine.
     assert 0.07 <= safe_at - stopped_at <= 0.105 + 0.02 + 0.15
@@ -155,7 +164,7 @@ def test_disarm_goes_safe_at_once(
     autopilot.armed = False
     autopilot.heartbeat()
     disarmed_at = time.monotonic()
-    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0, after=disarmed_at)
     assert safe_at - disarmed_at < 0.1  # the next frame after the HEARTBEAT is read
     time.sleep(0.3)  # outputs keep streaming at 1500 µs: still safe while disarmed
     assert all(ckesc_throttles(m) in (None, (0, 0, 0, 0)) for m in observer.since(safe_at))
@@ -217,7 +226,7 @@ def test_other_senders_are_ignored(
         assert seen == {(1000, 1000, 1000, 1000)}
         # When the autopilot disarms, the intruder's "armed" heartbeats do not keep it armed.
         autopilot.armed = False
-        expect_throttles(observer, (0, 0, 0, 0), 2.0)
+        expect_throttles(observer, (0, 0, 0, 0), 2.0, after=time.monotonic())
     finally:
         intruder.close()
 
@@ -278,7 +287,7 @@ def test_loop_goes_safe_and_exits_when_the_main_process_dies(
     killed_at = time.monotonic()
     daemon.proc.kill()  # no signal handler, no flush: the loop process is on its own
     daemon.proc.wait(5)
-    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0)
+    safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0, after=killed_at)
     assert safe_at - killed_at < 0.5  # stale input (100 ms) or its parent gone, whichever first
     time.sleep(1.5)  # the orphaned loop flushes safe values for 200 ms, then exits
     quiet_since = time.monotonic()

@@ -1,11 +1,8 @@
-"""Output drivers: fractions to frames, never out of range; and the mailbox across processes."""
+"""Output drivers: fractions to frames, never out of range."""
 
 from __future__ import annotations
 
 import math
-import multiprocessing
-import time
-from typing import Any
 
 from hypothesis import given
 from hypothesis import strategies as st
@@ -13,7 +10,6 @@ from hypothesis import strategies as st
 from bridge.config import build_config, with_esc_count
 from bridge.escs import ckesc, ft
 from bridge.escs.drivers import CkescDriver, FtDriver, make_driver
-from bridge.mailbox import CommandMailbox
 
 ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True)
 
@@ -110,50 +106,3 @@ def test_ft_never_out_of_range(fractions: list[float], tick: int) -> None:
     assert frame is not None and isinstance(frame.message, ft.SetCurrent)
     assert -30.0 <= frame.message.current_a <= 30.0
     assert math.isfinite(frame.message.current_a)
-
-
-def _reader(
-    mailbox: CommandMailbox, ready: Any, distinct: Any, out: multiprocessing.Queue[list[Any]]
-) -> None:
-    """In another process: read until a vector of 1.0s, checking every read is one whole write;
-    ``distinct`` tells the writer how many different writes it has seen so far."""
-    seen: list[tuple[int, float]] = []
-    ready.set()
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        commands = mailbox.read()
-        if commands is None:
-            continue
-        values = commands.fractions
-        assert len(set(values)) == 1, f"torn read: {values}"
-        assert commands.time_ns == round(values[0] * 1e9), "time and values from different writes"
-        if not seen or seen[-1][0] != commands.seq:
-            seen.append((commands.seq, values[0]))
-            distinct.value = len(seen)
-        if values[0] == 1.0:
-            break
-    out.put([len(seen), seen[-1]])
-
-
-def test_mailbox_reads_whole_writes_across_processes() -> None:
-    ctx = multiprocessing.get_context("spawn")
-    mailbox = CommandMailbox(16, ctx)
-    results: multiprocessing.Queue[list[Any]] = ctx.Queue()
-    ready = ctx.Event()
-    distinct_seen = ctx.Value("q", 0, lock=False)
-    reader = ctx.Process(target=_reader, args=(mailbox, ready, distinct_seen, results))
-    reader.start()
-    assert ready.wait(30)
-    # Write until the reader has overlapped many writes (a loaded machine may schedule it late
-    # and seldom), or for 20 s at most.
-    start = time.monotonic()
-    writes = 0
-    while writes < 200_000 or (distinct_seen.value <= 100 and time.monotonic() - start < 20):
-        writes += 1
-        mailbox.write([writes / 1e9] * 16, writes)
-    mailbox.write([1.0] * 16, 1_000_000_000)
-    distinct, last = results.get(timeout=30)
-    reader.join(10)
-    assert reader.exitcode == 0
-    assert last == (2 * (writes + 1), 1.0)
-    assert distinct > 100, "the reader should have seen writes in progress, not just the last"

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge import daemon
+from bridge import preflight
 from bridge.config import build_config
 from bridge.demo import DemoOptions, DemoPorts, bridge_config, bridge_settings, toml_text
 from bridge.mixer import load_mixer
@@ -147,7 +147,7 @@ def test_the_bridge_configuration_is_valid_and_fits_the_bus(
     assert config.can.options == {"port": 43113, "hop_limit": 0}
     assert config.zenoh.listen == ("tcp/127.0.0.1:7447",)
     assert (config.zenoh.vehicle, config.zenoh.multicast_scouting) == ("demo", False)
-    planned = daemon.plan(bridge_config(options, ports))  # bus load, one ESC per output
+    planned = preflight.plan(bridge_config(options, ports))  # bus load, one ESC per output
     assert len(planned.mixer.outputs) == motor_count(airframe)
 
 
