@@ -29,10 +29,11 @@ Kinds (the URL forms of :data:`ACCEPTED_URL_FORMS`, parsed by :func:`parse_url`)
   pymavlink does; until a datagram arrives there is nobody to send to.
 * ``udpout:HOST:PORT`` sends there and receives the replies on the same socket.
 * ``tcp:HOST:PORT`` connects there, without blocking: the connect is started, and completed
-  (or given up after :data:`_CONNECT_TIMEOUT_NS`) by :meth:`~AutopilotTransport.service`.
+  (or given up after 2 s without an answer) by :meth:`~AutopilotTransport.service`.
 * ``tcpin:HOST:PORT`` listens there and serves one client at a time: a new client replaces the
   old one (an autopilot that restarted reconnects before its old connection times out).
-* ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control.
+* ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control; a helper thread
+  does the reopening, since a USB adapter's driver sleeps in open() (:class:`SerialTransport`).
 
 Clocks: every input is stamped with ``time.monotonic_ns()``. A UDP datagram carries the kernel's
 receive time (``SO_TIMESTAMPNS``), so its stamp says when it arrived even when the loop reads it
@@ -43,8 +44,11 @@ Link trouble never raises once open: a TCP or serial stream that ends or fails i
 reopened with jittered, capped exponential backoff (0.1 s, doubling, 5 s cap, as
 :mod:`bridge.mavlink_in`), and counted in :class:`TransportStats`. Each change of state (lost,
 connected, a different reason for failing) is logged once through this module's logger; the
-retries themselves are not. :func:`open_transport` raises :class:`~bridge.errors.LinkError` only
-for what is wrong at start and will not get better (see its docstring).
+retries themselves are not. The logging happens on the calling thread, so the real-time
+process should give its loggers a handler that never blocks (``logging.handlers.QueueHandler``
+with a ``QueueListener``), not one that writes to a pipe or journald from the loop.
+:func:`open_transport` raises :class:`~bridge.errors.LinkError` only for what is wrong at start
+and will not get better (see its docstring).
 
 Sends never block either. A stream that cannot take a whole frame now keeps the rest in a
 bounded pending buffer, written out by later :meth:`~AutopilotTransport.send` and
@@ -962,7 +966,10 @@ class SerialTransport(_ReopeningStream):
 
     Opening (after the first time, at construction) and closing run in a helper thread, one
     per transport and idle otherwise, since a USB adapter's driver sleeps in both;
-    :meth:`service` hands it the work and picks up the result.
+    :meth:`service` hands it the work and picks up the result. Reads ask first how many bytes
+    wait (see :meth:`_read_some`). The caller's own ``poll()`` on a tty with nothing in it may
+    wait for the kernel's flip-buffer worker in the same way (``n_tty_poll``), which a poll
+    with a timeout up to the next tick absorbs.
     """
 
     def __init__(
