@@ -29,10 +29,11 @@ Kinds (the URL forms of :data:`ACCEPTED_URL_FORMS`, parsed by :func:`parse_url`)
   pymavlink does; until a datagram arrives there is nobody to send to.
 * ``udpout:HOST:PORT`` sends there and receives the replies on the same socket.
 * ``tcp:HOST:PORT`` connects there, without blocking: the connect is started, and completed
-  (or given up after :data:`_CONNECT_TIMEOUT_NS`) by :meth:`~AutopilotTransport.service`.
+  (or given up after 2 s without an answer) by :meth:`~AutopilotTransport.service`.
 * ``tcpin:HOST:PORT`` listens there and serves one client at a time: a new client replaces the
   old one (an autopilot that restarted reconnects before its old connection times out).
-* ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control.
+* ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control; a helper thread
+  does the reopening, since a USB adapter's driver sleeps in open() (:class:`SerialTransport`).
 
 Clocks: every input is stamped with ``time.monotonic_ns()``. A UDP datagram carries the kernel's
 receive time (``SO_TIMESTAMPNS``), so its stamp says when it arrived even when the loop reads it
@@ -43,8 +44,11 @@ Link trouble never raises once open: a TCP or serial stream that ends or fails i
 reopened with jittered, capped exponential backoff (0.1 s, doubling, 5 s cap, as
 :mod:`bridge.mavlink_in`), and counted in :class:`TransportStats`. Each change of state (lost,
 connected, a different reason for failing) is logged once through this module's logger; the
-retries themselves are not. :func:`open_transport` raises :class:`~bridge.errors.LinkError` only
-for what is wrong at start and will not get better (see its docstring).
+retries themselves are not. The logging happens on the calling thread, so the real-time
+process should give its loggers a handler that never blocks (``logging.handlers.QueueHandler``
+with a ``QueueListener``), not one that writes to a pipe or journald from the loop.
+:func:`open_transport` raises :class:`~bridge.errors.LinkError` only for what is wrong at start
+and will not get better (see its docstring).
 
 Sends never block either. A stream that cannot take a whole frame now keeps the rest in a
 bounded pending buffer, written out by later :meth:`~AutopilotTransport.send` and
@@ -58,16 +62,19 @@ room for an IPv6 literal). Not thread-safe: one thread owns a transport.
 from __future__ import annotations
 
 import array
+import contextlib
 import errno
 import fcntl
 import logging
 import os
+import queue
 import random
 import re
 import select
 import socket
 import struct
 import termios
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections import deque
@@ -866,6 +873,87 @@ class TcpServerTransport(_StreamTransport):
         self._listener.close()
 
 
+def _open_tty(path: str, speed: int) -> int:
+    """Open a terminal device raw, 8N1, no flow control, non-blocking; raises OSError."""
+    # O_NONBLOCK also keeps open() from waiting for a modem's carrier; O_NOCTTY keeps the
+    # device from becoming our controlling terminal.
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
+        iflag &= ~(
+            termios.IGNBRK
+            | termios.BRKINT
+            | termios.PARMRK
+            | termios.ISTRIP
+            | termios.INLCR
+            | termios.IGNCR
+            | termios.ICRNL
+            | termios.IXON
+            | termios.IXOFF
+            | termios.IXANY
+            | termios.INPCK
+        )
+        oflag &= ~termios.OPOST
+        lflag &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+        cflag &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | termios.CRTSCTS)
+        cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL  # CLOCAL: ignore modem lines
+        cc[termios.VMIN] = 0
+        cc[termios.VTIME] = 0
+        termios.tcsetattr(fd, termios.TCSANOW, [iflag, oflag, cflag, lflag, speed, speed, cc])
+        # Bytes that waited in the driver before we opened would be stamped as just read.
+        termios.tcflush(fd, termios.TCIOFLUSH)
+    except termios.error as exc:
+        os.close(fd)
+        code, text = exc.args
+        raise OSError(code, text) from exc
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _close_tty(fd: int) -> None:
+    """Close a terminal device without waiting for its unsent output to drain (which close()
+    would do, for up to the port's closing_wait, 30 s by default)."""
+    with contextlib.suppress(termios.error):
+        termios.tcflush(fd, termios.TCOFLUSH)
+    with contextlib.suppress(OSError):
+        os.close(fd)
+
+
+_OPEN_REQUEST: Final = -1
+"""Asks a serial helper to open its device; a descriptor (>= 0) asks it to close that one;
+None asks it to stop."""
+
+
+def _serve_serial(
+    path: str,
+    speed: int,
+    requests: queue.SimpleQueue[int | None],
+    results: queue.SimpleQueue[int | OSError],
+) -> None:
+    """A serial transport's helper thread: opens and closes the device, which a USB adapter's
+    driver may sleep in for milliseconds (cdc-acm and ftdi_sio send USB control transfers
+    from open() and tcsetattr() and wait for them), so the real-time thread never does.
+    Holds no reference to the transport, so a forgotten transport is still collected."""
+    while True:
+        request = requests.get()
+        if request is None:
+            # Stopped: a device opened for a transport that has closed meanwhile is closed.
+            while not results.empty():
+                opened = results.get()
+                if isinstance(opened, int):
+                    _close_tty(opened)
+            return
+        if request >= 0:
+            _close_tty(request)
+            continue
+        try:
+            results.put(_open_tty(path, speed))
+        except OSError as exc:
+            results.put(exc)
+
+
 class SerialTransport(_ReopeningStream):
     """``serial``: a terminal device opened raw, 8N1, no flow control, non-blocking; reopened
     (by path, so a ``/dev/serial/by-id`` link finds a re-enumerated adapter) when it goes away.
@@ -875,6 +963,13 @@ class SerialTransport(_ReopeningStream):
     stays full, and its ``read`` calls ``select()`` (which fails for descriptors above 1023)
     before every read. Here a read or write is one system call. The price: only the rates
     ``termios`` names (50..4000000 bit/s, every rate an autopilot uses).
+
+    Opening (after the first time, at construction) and closing run in a helper thread, one
+    per transport and idle otherwise, since a USB adapter's driver sleeps in both;
+    :meth:`service` hands it the work and picks up the result. Reads ask first how many bytes
+    wait (see :meth:`_read_some`). The caller's own ``poll()`` on a tty with nothing in it may
+    wait for the kernel's flip-buffer worker in the same way (``n_tty_poll``), which a poll
+    with a timeout up to the next tick absorbs.
     """
 
     def __init__(
@@ -897,75 +992,49 @@ class SerialTransport(_ReopeningStream):
                 f"cannot open MAVLink {endpoint.url!r}: {endpoint.baud} bit/s is not a standard "
                 "rate; expected one of 57600, 115200, 230400, 460800, 921600, 1500000, ..."
             )
-        self._speed = speed
         self._waiting = array.array("i", [0])  # TIOCINQ's answer, written in place
         self.stats.attempts += 1
         try:
-            fd = self._open_device()
+            fd: int | None = _open_tty(endpoint.address, speed)
         except OSError as exc:
             if not wait_for_link or exc.errno not in _SERIAL_TRANSIENT:
                 raise LinkError(f"cannot open MAVLink {endpoint.url!r}: {_reason(exc)}") from exc
-            self._closed = False
-            self._attempt_failed(_reason(exc))
-            return
+            fd, failure = None, _reason(exc)
+        self._requests: queue.SimpleQueue[int | None] = queue.SimpleQueue()
+        self._results: queue.SimpleQueue[int | OSError] = queue.SimpleQueue()
+        self._opening = False  # an open request is with the helper
+        threading.Thread(
+            target=_serve_serial,
+            args=(endpoint.address, speed, self._requests, self._results),
+            name=f"serial-helper {endpoint.address}",
+            daemon=True,  # a driver stuck in open() must not keep the process alive
+        ).start()
         self._closed = False
-        self._connected(fd, f"open at {endpoint.baud} bit/s")
-
-    def _open_device(self) -> int:
-        """Open and configure the device; raises OSError."""
-        # O_NONBLOCK also keeps open() from waiting for a modem's carrier; O_NOCTTY keeps the
-        # device from becoming our controlling terminal.
-        fd = os.open(self.endpoint.address, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
-        try:
-            iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
-            iflag &= ~(
-                termios.IGNBRK
-                | termios.BRKINT
-                | termios.PARMRK
-                | termios.ISTRIP
-                | termios.INLCR
-                | termios.IGNCR
-                | termios.ICRNL
-                | termios.IXON
-                | termios.IXOFF
-                | termios.IXANY
-                | termios.INPCK
-            )
-            oflag &= ~termios.OPOST
-            lflag &= ~(
-                termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN
-            )
-            cflag &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | termios.CRTSCTS)
-            cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL  # CLOCAL: ignore modem lines
-            cc[termios.VMIN] = 0
-            cc[termios.VTIME] = 0
-            attrs = [iflag, oflag, cflag, lflag, self._speed, self._speed, cc]
-            termios.tcsetattr(fd, termios.TCSANOW, attrs)
-            # Bytes that waited in the driver before we opened would be stamped as just read.
-            termios.tcflush(fd, termios.TCIOFLUSH)
-        except termios.error as exc:
-            os.close(fd)
-            code, text = exc.args
-            raise OSError(code, text) from exc
-        except BaseException:
-            os.close(fd)
-            raise
-        return fd
+        if fd is None:
+            self._attempt_failed(failure)
+        else:
+            self._connected(fd, f"open at {endpoint.baud} bit/s")
 
     def service(self, now_ns: int) -> None:
         if self._fd is not None:
             if self._pending:
                 self._flush()
             return
-        if self._closed or now_ns < self._retry_at_ns:
+        if self._closed:
             return
-        self.stats.attempts += 1
-        try:
-            fd = self._open_device()
-        except OSError as exc:
-            self._attempt_failed(_reason(exc))
-            return
-        self._connected(fd, f"open at {self.endpoint.baud} bit/s")
+        if self._opening:
+            if self._results.empty():
+                return  # the helper is still at it
+            self._opening = False
+            result = self._results.get()
+            if isinstance(result, OSError):
+                self._attempt_failed(_reason(result))
+            else:
+                self._connected(result, f"open at {self.endpoint.baud} bit/s")
+        elif now_ns >= self._retry_at_ns:
+            self.stats.attempts += 1
+            self._opening = True
+            self._requests.put(_OPEN_REQUEST)
 
     def _read_some(self) -> bytes | None:
         assert self._fd is not None
@@ -985,8 +1054,12 @@ class SerialTransport(_ReopeningStream):
 
     def _close_stream(self) -> None:
         if self._fd is not None:
-            os.close(self._fd)
+            self._requests.put(self._fd)  # the helper closes it: close() may wait in the driver
         self._fd = None
+
+    def _close_all(self) -> None:
+        super()._close_all()
+        self._requests.put(None)
 
 
 def open_transport(
@@ -994,8 +1067,10 @@ def open_transport(
     wait_for_link: bool = True,
     pending_limit_bytes: int = PENDING_LIMIT_BYTES,
 ) -> AutopilotTransport:
-    """Open the transport for ``endpoint`` (from :func:`parse_url`), never blocking for long:
-    DNS is resolved here, once, and nothing after this call waits.
+    """Open the transport for ``endpoint`` (from :func:`parse_url`). Call it before the loop
+    starts: it is the one call that may wait, to resolve a host name (once; the loop never
+    does), to open a serial device the first time and start its helper thread, and, without
+    ``wait_for_link``, for a TCP connect. No method of the transport waits after it.
 
     ``wait_for_link`` True (the default, for the real-time loop): a TCP server that is not up
     yet, or a serial device that does not exist yet (a USB adapter not enumerated at boot, a
