@@ -227,10 +227,7 @@ class AutopilotInput:
 
     def _set_armed(self, armed: bool, heard_ns: int) -> None:
         inputs = self._inputs
-        changed = armed != inputs.armed
         inputs.armed = armed
         inputs.armed_heard_ns = max(inputs.armed_heard_ns, heard_ns)
-        if changed:
-            self._snapshot.write(
-                inputs.input_produced_ns, self.fractions, armed, inputs.armed_heard_ns
-            )
+        # Each time (a HEARTBEAT a second): the main process judges the arming state's age too.
+        self._snapshot.write(inputs.input_produced_ns, self.fractions, armed, inputs.armed_heard_ns)

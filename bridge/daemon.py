@@ -226,7 +226,7 @@ class MotorTestControl:
             ):
                 self._motor_tests.stop_motor_test()  # the loop has ended it already
                 self._running = None
-                text = "Motor test: stopped, vehicle armed or autopilot lost"
+                text = "Motor test: stopped, armed or autopilot lost"
             elif plan.count > 1 and motor and motor != self._reported_motor:
                 self._reported_motor = motor
                 text = f"Motor test: motor {motor}"

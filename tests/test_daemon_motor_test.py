@@ -32,10 +32,10 @@ class Gcs(MavlinkReceiver):
     """A ground station on one of the bridge's extra outputs: sends DO_MOTOR_TEST, records
     everything the bridge sends (decoded with the project's dialect)."""
 
-    def __init__(self) -> None:
+    def __init__(self, system: int = 255) -> None:
         self.port = free_port()
         self.conn: Any = mavutil.mavlink_connection(
-            f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190
+            f"udpin:127.0.0.1:{self.port}", source_system=system, source_component=190
         )
         super().__init__(self.conn)
 
@@ -94,7 +94,14 @@ def gcs() -> Iterator[Gcs]:
     station.close()
 
 
-def write_config(path: Path, gcs: Gcs, extra: str = "") -> str:
+def write_config(path: Path, gcs: Gcs, extra: str = "", motor_test: bool = True) -> str:
+    """A config with the GCS as an output and DO_MOTOR_TEST on (off by default in the bridge)."""
+    switch = f"motor_test = {'true' if motor_test else 'false'}\n"
+    extra = (
+        extra.replace("[output]\n", "[output]\n" + switch)
+        if "[output]" in extra
+        else (extra + "[output]\n" + switch)
+    )
     path.write_text(f'[mavlink]\noutputs = ["udpout:127.0.0.1:{gcs.port}"]\n{extra}')
     return str(path)
 
@@ -123,7 +130,12 @@ def ready(autopilot: Autopilot, observer: Observer, gcs: Gcs, pwm: int = 1000) -
     autopilot.pwm = [pwm] * 4
     autopilot.start_stream(50)
     observer.wait_for(lambda m: throttles(m) == SAFE, START_TIMEOUT_S)
-    gcs.wait_for("HEARTBEAT", lambda m: m.get_srcComponent() == 191)
+    heard_disarmed(gcs)
+
+
+def heard_disarmed(gcs: Gcs) -> None:
+    """The bridge has heard the autopilot say disarmed (it reports that to the GCS)."""
+    gcs.wait_for("STATUSTEXT", lambda m: m.text == "ESC out: disarmed, motors stopped")
 
 
 def throttle_run(observer: Observer, want: tuple[int, ...], timeout_s: float) -> list[float]:
@@ -185,7 +197,7 @@ def test_pwm_on_ft_in_duty_mode_sends_duty_to_one_esc_and_safe_current_to_the_re
     start_daemon("--config", write_config(tmp_path / "b.toml", gcs, extra))
     autopilot.start_stream(50)
     observer.wait_for(lambda m: ft.decode(m) is not None, START_TIMEOUT_S)
-    gcs.wait_for("HEARTBEAT", lambda m: m.get_srcComponent() == 191)
+    heard_disarmed(gcs)
     sent = time.monotonic()
     assert gcs.motor_test(2, PWM, 1500, timeout_s=0.6) == ACCEPTED  # PWM 1500: half throttle
     first, _ = observer.wait_for(lambda m: (c := ft_command(m)) is not None and c[1] == "duty", 2.0)
@@ -229,7 +241,7 @@ def test_arming_stops_a_test_at_once_and_an_armed_vehicle_refuses_one(
     time.sleep(0.5)
     assert {throttles(m) for m in observer.since(stopped_at + 0.05)} <= {SAFE, None}
     texts = gcs.texts()
-    assert "Motor test: stopped, vehicle armed" in texts
+    assert "Motor test: stopped, armed or autopilot lost" in texts
     assert "Motor test refused: vehicle armed" in texts
 
 
@@ -304,3 +316,40 @@ def test_bad_commands_are_refused_and_nothing_spins(
     texts = gcs.texts()
     assert "Motor test refused: autopilot not heard" in texts
     assert "Motor test: motor 5 not 1..4" in texts
+
+
+@pytest.mark.parametrize(
+    ("system", "switched_on", "text"),
+    [
+        (99, True, None),  # a stranger: refused without a word to the ground station
+        (255, False, "Motor test refused: off in the bridge's config"),
+    ],
+    ids=["stranger", "switched-off"],
+)
+def test_a_motor_test_from_a_stranger_or_with_the_switch_off_is_denied_and_nothing_spins(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    tmp_path: Path,
+    system: int,
+    switched_on: bool,
+    text: str | None,
+) -> None:
+    station = Gcs(system)
+    try:
+        config = write_config(tmp_path / "b.toml", station, motor_test=switched_on)
+        daemon = start_daemon("--config", config)
+        ready(autopilot, observer, station)
+        sent = time.monotonic()
+        assert station.motor_test(1, PERCENT, 50, timeout_s=2) == DENIED
+        time.sleep(1.0)
+        assert {t for m in observer.since(sent) if (t := throttles(m))} == {SAFE}
+        if text is not None:
+            assert text in station.texts()
+        else:
+            assert not [t for t in station.texts() if "Motor test" in t]
+        daemon.stop()
+        if text is None:
+            assert "refused a motor test from system 99" in daemon.output
+    finally:
+        station.close()
