@@ -139,7 +139,7 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
     valid_range, valid_text = _check_valid_range(config, definition, input_range)
     passed += [valid_text, _describe_commands(config), _check_dialect()]
     directory = None
-    if record_dir is not None:
+    if record_dir:  # as the daemon reads it: an empty --record means no recording
         directory = Path(record_dir)
         passed.append(_check_record_dir(directory))
     return Plan(
