@@ -14,6 +14,7 @@ import codecs
 import math
 import reprlib
 import socket
+import stat
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -506,11 +507,14 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     one) of at most :data:`MAX_CONFIG_BYTES`; an empty file is valid and means the defaults.
 
     Raises:
-        ConfigError: the file is missing, a directory, unreadable, too big, binary or not
-            UTF-8 (naming the byte offset), or not valid TOML.
+        ConfigError: the file is missing, a directory or a device, unreadable, too big, binary
+            or not UTF-8 (naming the byte offset), or not valid TOML.
     """
     path = Path(path)
     try:
+        # Not even opened: a serial port would wait for its carrier forever, /dev/zero never ends.
+        if stat.S_ISCHR(path.stat().st_mode) or stat.S_ISBLK(path.stat().st_mode):
+            raise ConfigError(f"{path}: a device, not a file; expected a TOML config file")
         with path.open("rb") as file:
             data = file.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:

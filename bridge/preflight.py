@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -117,6 +118,7 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
     """
     source = config.source
     check_interface(config.can, source)
+    _check_mixer_file(config)
     with _located(source, "[mixer] name: "):
         definition = load_mixer(config.mixer.name)
     input_range = config.mixer.input_range or SOURCE_INPUT_RANGES[config.mavlink.source]
@@ -137,7 +139,7 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
     valid_range, valid_text = _check_valid_range(config, definition, input_range)
     passed += [valid_text, _describe_commands(config), _check_dialect()]
     directory = None
-    if record_dir is not None:
+    if record_dir:  # as the daemon reads it: an empty --record means no recording
         directory = Path(record_dir)
         passed.append(_check_record_dir(directory))
     return Plan(
@@ -163,6 +165,23 @@ def _located(source: str, key: str = "") -> Iterator[None]:
         if text.startswith(f"{source}: "):
             raise
         raise ConfigError(f"{source}: {key}{text}") from exc
+
+
+def _check_mixer_file(config: BridgeConfig) -> None:
+    """Refuse a mixer path that names a device before :func:`load_mixer` reads it: reading a
+    serial port waits for its carrier forever, and /dev/zero never ends."""
+    name = config.mixer.name
+    if not (name.endswith(".toml") or "/" in name or "\\" in name):
+        return  # a bundled mixer's name (load_mixer's rule)
+    try:
+        mode = Path(name).stat().st_mode
+    except OSError:
+        return  # load_mixer names what is wrong with it
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        raise ConfigError(
+            f"{config.source}: [mixer] name {name!r}: a device, not a file; expected a bundled "
+            "mixer's name or a mixer .toml file"
+        )
 
 
 def _describe_links(autopilot: Endpoint, outputs: Iterable[Endpoint]) -> str:

@@ -58,6 +58,31 @@ def test_shipped_examples_are_valid(path: Path) -> None:
             r"450 ms, so expected at least 9 Hz",
         ),
         ({"mavlink": []}, r"\[mavlink\] must be a table"),
+        (
+            {"output": {"arming_timeout_ms": 499}},
+            r"\[output\] arming_timeout_ms: expected an integer 500..60000, got 499",
+        ),
+        ({"output": {"arming_timeout_ms": 60_001}}, r"arming_timeout_ms: expected an integer"),
+        ({"output": {"arming_timeout_ms": 3000.0}}, r"arming_timeout_ms: expected an integer"),
+        ({"output": {"motor_test": 1}}, r"\[output\] motor_test: expected true or false, got 1"),
+        (
+            {"mavlink": {"command_senders": [255, 255]}},
+            r"command_senders: expected a non-empty list of distinct integers 1..255",
+        ),
+        (
+            {"mavlink": {"command_senders": [0]}},
+            r"command_senders: expected a non-empty list of integers 1..255, got \[0\]",
+        ),
+        ({"mavlink": {"command_senders": []}}, r"command_senders: expected a non-empty list"),
+        ({"mavlink": {"command_senders": 255}}, r"command_senders: expected a non-empty list"),
+        (
+            {"mixer": {"valid_range": [2200, 800]}},
+            r"\[mixer\] valid_range: expected two numbers \[low, high\] with low < high",
+        ),
+        ({"mixer": {"valid_range": [800]}}, r"valid_range: expected two numbers"),
+        ({"mixer": {"valid_range": [800, "2200"]}}, r"valid_range: expected two numbers"),
+        ({"mixer": {"valid_range": [False, True]}}, r"valid_range: expected two numbers"),
+        ({"mixer": {"input_range": [True, False]}}, r"input_range: expected two different"),
     ],
 )
 def test_bad_values_name_file_key_and_expectation(raw: dict[str, Any], message: str) -> None:
@@ -132,3 +157,32 @@ def test_missing_and_malformed_files(tmp_path: Path) -> None:
     bad.write_text("[output\nrate_hz = 1\n")
     with pytest.raises(ConfigError, match=r"bad.toml: not valid TOML"):
         read_config_file(bad)
+
+
+def test_new_keys_defaults_and_values() -> None:
+    defaults = build_config({}, "v.toml")
+    assert defaults.output.arming_timeout_ms == 3000
+    assert defaults.output.motor_test is False
+    assert defaults.mavlink.command_senders is None
+    assert defaults.mixer.valid_range is None
+    config = build_config(
+        {
+            "output": {"arming_timeout_ms": 500, "motor_test": True},
+            "mavlink": {"command_senders": [7, 255, 42]},
+            "mixer": {"valid_range": [-2, 2.5]},
+        },
+        "v.toml",
+    )
+    assert config.output.arming_timeout_ms == 500
+    assert config.output.motor_test is True
+    assert config.mavlink.command_senders == (7, 255, 42)
+    assert config.mixer.valid_range == (-2, 2.5)
+
+
+def test_command_sender_ids() -> None:
+    # By default a ground station (255) and the autopilot itself may send motor commands.
+    assert build_config({}, "v").command_sender_ids == frozenset({1, 255})
+    other_autopilot = build_config({"mavlink": {"autopilot_system_id": 3}}, "v")
+    assert other_autopilot.command_sender_ids == frozenset({3, 255})
+    given = build_config({"mavlink": {"command_senders": [200, 7]}}, "v")
+    assert given.command_sender_ids == frozenset({7, 200})
