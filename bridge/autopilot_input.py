@@ -32,7 +32,7 @@ from bridge.mavlink.actuators import HEARTBEAT_ID, decoder_for, heartbeat_armed
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
 from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
-from bridge.mixer import PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition
+from bridge.mixer import AXIS_VALID_RANGE, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition
 from bridge.relay import LoopEnd
 from bridge.safety import ControlInputs
 
@@ -87,7 +87,7 @@ class AutopilotInput:
         self._clock = AutopilotClock(time_bits=64)
         self._clock_bits = 0  # the width of the clock built, set on the first input
         self._scanner = FrameScanner.for_dialect(load_dialect())
-        self._mixer = Mixer(setup.mixer, setup.valid_range)
+        self._mixer = Mixer(setup.mixer, setup.valid_range, AXIS_VALID_RANGE)
         self._axes = (
             AxisChannels(mavlink_axes, setup.channel_range or PWM_RANGE_US)
             if (mavlink_axes := config.mixer.axis_channels)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import sys
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -464,11 +465,14 @@ class Mixer:
     """
 
     def __init__(
-        self, definition: MixerDefinition, valid_range: tuple[float, float] | None = None
+        self,
+        definition: MixerDefinition,
+        valid_range: tuple[float, float] | None = None,
+        axis_valid_range: tuple[float, float] | None = None,
     ) -> None:
-        """``valid_range``: channel inputs outside it make :meth:`mix` refuse the input (None:
-        only NaN and infinities are refused). Axis inputs are valid within
-        :data:`AXIS_VALID_RANGE`."""
+        """``valid_range`` and ``axis_valid_range``: channel and axis inputs outside them make
+        :meth:`mix` refuse the input (None: any finite value is taken, and clamped). The bridge
+        passes its configured range and :data:`AXIS_VALID_RANGE`."""
         self.definition = definition
         outputs = definition.outputs
         rotor_outputs = [o for o in outputs if o.rotor is not None]
@@ -510,12 +514,10 @@ class Mixer:
             for o in outputs
         ]
         used = sorted({_INPUT_INDEX[name] for o in outputs for name, _ in o.weights})
-        channel_lo, channel_hi = valid_range or (-math.inf, math.inf)
+        finite = (-sys.float_info.max, sys.float_info.max)
+        channels, axes = valid_range or finite, axis_valid_range or finite
         # (index, lowest, highest) of every input some output uses; NaN fails both compares.
-        self._valid = tuple(
-            (i, *((channel_lo, channel_hi) if i < CHANNEL_COUNT else AXIS_VALID_RANGE))
-            for i in used
-        )
+        self._valid = tuple((i, *(channels if i < CHANNEL_COUNT else axes)) for i in used)
 
     @property
     def n_outputs(self) -> int:

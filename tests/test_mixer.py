@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from bridge.errors import ConfigError
 from bridge.mixer import (
+    AXIS_VALID_RANGE,
     INPUT_NAMES,
     Mixer,
     MixerDefinition,
@@ -594,6 +595,42 @@ def test_geometry_outputs_within_range_for_any_finite_inputs(
     )
     for spec, v in zip(definition.outputs, out, strict=True):
         assert (spec.idle if armed else spec.minimum) <= v <= spec.maximum
+
+
+@pytest.mark.parametrize(
+    ("pwm", "valid"),
+    [
+        (799.9, False),
+        (800.0, True),
+        (1500.0, True),
+        (2200.0, True),
+        (2200.1, False),
+        (3000.0, False),
+        (65535.0, False),
+        (math.inf, False),
+        (NAN, False),
+    ],
+)
+def test_a_channel_outside_the_valid_range_refuses_the_input(pwm: float, valid: bool) -> None:
+    mixer = Mixer(load_mixer("passthrough-4"), (800.0, 2200.0))
+    result = mixer.mix(inputs([1500.0, pwm, 1500.0, 1500.0]), armed=True)
+    if valid:
+        assert result is not None and result[1] == min(max((pwm - 1000) / 1000, 0.0), 1.0)
+    else:
+        assert result is None  # never clamped into full throttle
+
+
+@pytest.mark.parametrize("value", [1.6, -1.6, 1e38, -math.inf])
+def test_an_axis_outside_its_valid_range_refuses_the_input(value: float) -> None:
+    mixer = Mixer(load_mixer("quad-x"), None, AXIS_VALID_RANGE)
+    assert mixer.mix(inputs(roll=value, pitch=0.0, yaw=0.0, thrust=0.5), armed=True) is None
+    assert mixer.mix(inputs(roll=1.5, pitch=0.0, yaw=0.0, thrust=0.5), armed=True) is not None
+
+
+def test_without_valid_ranges_only_non_finite_inputs_are_refused() -> None:
+    mixer = Mixer(load_mixer("passthrough-4"))
+    assert mix(mixer, inputs([1e300, 1500.0, 1500.0, 1500.0]))[0] == 1.0  # clamped
+    assert mixer.mix(inputs([math.inf, 1500.0, 1500.0, 1500.0]), False) is None
 
 
 # --------------------------------------------------------------------------------------------
