@@ -297,7 +297,9 @@ class OutputConfig:
     )
     require_armed: bool = key(True, _bool, "send safe values while disarmed (false: bench use)")
     input_timeout_ms: int = key(
-        100, _int_range(20, 1000), "input older than this is stale: safe values are sent"
+        100,
+        _int_range(20, 1000),
+        "an input produced (by the autopilot's clock) longer ago than this is stale: safe values",
     )
     arming_timeout_ms: int = key(
         3000,
@@ -305,7 +307,9 @@ class OutputConfig:
         "the autopilot's arming state (its HEARTBEAT) older than this counts as disarmed: "
         "safe values",
     )
-    shutdown_flush_ms: int = key(200, _int_range(0, 5000), "safe values sent this long on exit")
+    shutdown_flush_ms: int = key(
+        200, _int_range(0, 5000), "safe values sent this long on a stop signal or a death"
+    )
     motor_test: bool = key(
         False,
         _bool,
@@ -319,7 +323,8 @@ class OutputConfig:
     loop: LoopMode = key(
         "auto",
         _choice("auto", "process", "thread"),
-        "where the output loop runs: its own process (free of the GIL), a thread, or auto "
+        "where the control loop (autopilot link, mixer, CAN transmit) runs: its own process (free "
+        "of the GIL), a thread, or auto "
         "(process for interfaces several processes can open: socketcan, udp_multicast)",
     )
     realtime_priority: int = key(

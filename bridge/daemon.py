@@ -441,6 +441,9 @@ class Supervisor:
         self._tick_errors = 0
 
     def stop(self) -> None:
+        """Stop: the loop starts its safe flush on its next tick (the request is one store to
+        shared memory, fine from a signal handler), and the supervisor winds down."""
+        self.runner.request_stop()
         self._stop.set()
 
     def run(self) -> int:
