@@ -82,10 +82,11 @@ def autopilot_worker(port: int, n_channels: int, seconds: float, out: Any) -> No
             mav.heartbeat_send(2, 3, armed, 0, 4)
         pwm = [1000 + (k % 1000)] + [1500] * 31  # throttle on channel 1 = 2 x (k mod 1000)
         ext = {f"servo{i}_raw": pwm[i - 1] for i in range(9, 17)}
-        mav.servo_output_raw_send(k & 0xFFFFFFFF, 0, *pwm[:8], **ext)
+        time_us = time.monotonic_ns() // 1000 & 0xFFFFFFFF  # the autopilot's clock, as ArduPilot
+        mav.servo_output_raw_send(time_us, 0, *pwm[:8], **ext)
         if n_channels > 16:
             ext = {f"servo{i}_raw": pwm[i + 15] for i in range(9, 17)}
-            mav.servo_output_raw_send(k & 0xFFFFFFFF, 1, *pwm[16:24], **ext)
+            mav.servo_output_raw_send(time_us, 1, *pwm[16:24], **ext)
         sends.append((2 * (k % 1000), time.time()))
         k += 1
         _sleep_until(start + k * period)

@@ -36,8 +36,10 @@ from bridge.mixer import AXIS_VALID_RANGE, PWM_RANGE_US, AxisChannels, Mixer, Mi
 from bridge.relay import LoopEnd
 from bridge.safety import ControlInputs
 
-# Chunks read per wake-up at most, so a flood on the link cannot hold a tick off for long.
-MAX_READS_PER_WAKE = 16
+# Chunks read per wake-up at most: enough to empty the socket at every tick whatever the
+# link carries (a queue that grew would make every input old), few enough that a flood on the
+# link cannot hold a tick off for long.
+MAX_READS_PER_WAKE = 256
 MAX_RELAYED_FRAMES_PER_WAKE = 64
 
 

@@ -195,6 +195,7 @@ class OutputLoop:
             len(setup.input.mixer.outputs),
         )
         self._relay = LoopEnd(relay) if relay is not None else None
+        self._relay_open = relay is not None
         self._input = AutopilotInput(
             config, setup.input, self._inputs, stats, snapshot, self._relay
         )
@@ -258,9 +259,8 @@ class OutputLoop:
         min_gap_ns = period_ns // IMMEDIATE_MAX_RATE_FACTOR
         keepalive_ns = period_ns * 3 // 2
         immediate = self._config.output.latency == "immediate"
-        monotonic_ns, wait = time.monotonic_ns, select.select
+        monotonic_ns, wait, sleep = time.monotonic_ns, select.select, time.sleep
         parent = os.getppid() if self._watch_parent else 0
-        relay_fd = relay.fileno() if relay is not None else -1
         test_seq = 0  # the newest motor test read (MAV_CMD_DO_MOTOR_TEST)
         counters[state_i] = selector.state
         stop_at_ns = 0
@@ -268,33 +268,38 @@ class OutputLoop:
         input_tick = False
         last_ns = next_ns = monotonic_ns()
         while True:
-            # Wait for input, a frame to relay or the tick, whichever comes first.
             delay_ns = next_ns - monotonic_ns()
-            if delay_ns > 0:
+            if not immediate:
+                # Fixed rate: sleep to the tick, then take everything that arrived meanwhile.
+                # The kernel stamped each datagram as it arrived and the autopilot dated each
+                # input, so reading late costs no accuracy, and one wake-up per tick halves
+                # the loop's CPU against waking for every input too.
+                if delay_ns > 0:
+                    sleep(delay_ns / 1e9)
+                now = monotonic_ns()
+                input_side.on_readable(now)
+                main_gone = not self._exchange_with_main(now)
+            elif delay_ns > 0:
+                # Immediate: wait for input, a frame to relay or the tick, whichever comes first.
                 link_fd = input_side.fd
+                relay_fd = relay.fileno() if relay is not None and self._relay_open else -1
                 readers = [fd for fd in (link_fd, relay_fd) if fd is not None and fd >= 0]
                 writers = [link_fd] if link_fd is not None and input_side.wants_write else []
                 ready = wait(readers, writers, (), delay_ns / 1e9)[0]
                 now = monotonic_ns()
-                if ready:
-                    if link_fd in ready and input_side.on_readable(now) and immediate:
-                        # Fresh input goes out now, or as soon as the frame-rate cap allows:
-                        # never within min_gap of the last frame, so an input flood cannot
-                        # flood the bus.
-                        next_ns = min(next_ns, max(now, last_ns + min_gap_ns))
-                        input_tick = True
-                    if relay_fd in ready:
-                        try:
-                            input_side.on_relay()
-                        except EOFError:
-                            relay_fd = -1  # the main process is gone: stop below
-                            if not stop_at_ns:
-                                stop_at_ns = now + self._flush_ns
-                input_side.service(now)
-                if now < next_ns:
+                if link_fd in ready and input_side.on_readable(now):
+                    # Fresh input goes out now, or as soon as the frame-rate cap allows: never
+                    # within min_gap of the last frame, so an input flood cannot flood the bus.
+                    next_ns = min(next_ns, max(now, last_ns + min_gap_ns))
+                    input_tick = True
+                main_gone = not self._exchange_with_main(now)
+                if now < next_ns and not main_gone:
                     continue
             else:
                 now = monotonic_ns()
+                main_gone = False
+            if main_gone and not stop_at_ns:
+                stop_at_ns = now + self._flush_ns  # its end of the relay is closed: flush now
             n = counters[lateness_count_i]
             lateness[n % LATENESS_RING] = (now - next_ns) // 1000
             counters[lateness_count_i] = n + 1
@@ -333,6 +338,19 @@ class OutputLoop:
                 missed = behind_ns // period_ns
                 next_ns += missed * period_ns
                 counters[overruns_i] += missed
+
+    def _exchange_with_main(self, now_ns: int) -> bool:
+        """Write what the main process relayed to the autopilot link and progress the link;
+        False when the main process is gone (its end of the relay closed), once."""
+        self._input.service(now_ns)
+        if not self._relay_open:
+            return True
+        try:
+            self._input.on_relay()
+        except EOFError:
+            self._relay_open = False
+            return False
+        return True
 
     def _send(self, frames: list[can.Message], now_ns: int) -> int:
         """Send without blocking; count failures; reopen a bus that is gone, with backoff."""

@@ -39,6 +39,12 @@ were really sent (within ``max_drift`` of how long they waited) and their age sh
 - A remote time up to 1 s behind the newest one (a reordered packet) is placed by the estimate
   and does not move the newest time.
 
+- Not a clock: a remote time that advances at under half our rate, measured over 0.5 s of
+  samples that arrived close together (at most 100 ms apart, so neither a stall of ours nor a
+  silence of the autopilot counts), is no µs clock (a message counter in ``time_usec``, a
+  frozen simulator): the receive time is returned until a window shows a real rate again.
+  Without this, such a sender's inputs would all look old and never move a motor.
+
 Limits. The first sample, and the first after a re-seed, is taken as fresh: a backlog read at
 start-up (or a silence longer than ``reset_after_ns`` followed at once by a stall of this
 process) is misjudged until its newer packets arrive; drain the link before trusting it. A
@@ -57,6 +63,11 @@ __all__ = ["AutopilotClock"]
 _REBOOT_STEP_US: Final = 1_000_000  # a step back of more than 1 s is a reboot
 _SAME_TIME_REPEATS: Final = 1  # a repeated remote time is the same instant this many times
 _NS_PER_US: Final = 1000
+# The rate check: pairs of samples at most this far apart locally count, over windows of this
+# much local time; a remote clock slower than this fraction of ours is no clock.
+_RATE_PAIR_MAX_GAP_NS: Final = 100_000_000
+_RATE_WINDOW_NS: Final = 500_000_000
+_MIN_RATE: Final = 0.5
 
 
 class AutopilotClock:
@@ -92,6 +103,13 @@ class AutopilotClock:
         self._newest_us = 0  # ... unwrapped
         self._newest_received_ns = 0
         self._repeats = 0
+        # The remote clock's rate against ours, over pairs of samples that arrived close
+        # together (a stall of ours or a silence of the autopilot in between says nothing).
+        self._rate_remote_ns = 0
+        self._rate_local_ns = 0
+        self.not_a_clock = False
+        """The remote time runs at under half our rate: it is no µs clock (a counter, a
+        frozen simulator), and the receive time is all there is."""
         self.reseeds = 0
         """Times the estimate was re-seeded by a reboot or a gap (not counting the first)."""
 
@@ -123,6 +141,13 @@ class AutopilotClock:
             if step_ns > reset_after and received_ns - self._newest_received_ns > reset_after:
                 self.reseeds += 1
                 return self._seed(remote_us, received_ns)
+            local_gap_ns = received_ns - self._newest_received_ns
+            if 0 <= local_gap_ns <= _RATE_PAIR_MAX_GAP_NS:
+                self._rate_remote_ns += step_ns
+                self._rate_local_ns += local_gap_ns
+                if self._rate_local_ns >= _RATE_WINDOW_NS:
+                    self.not_a_clock = self._rate_remote_ns < self._rate_local_ns * _MIN_RATE
+                    self._rate_remote_ns = self._rate_local_ns = 0
             remote_ns = (self._newest_us + step_us) * _NS_PER_US
             allowed = offset + int(step_ns * self._max_drift)
             sample = received_ns - remote_ns
@@ -131,6 +156,8 @@ class AutopilotClock:
             self._newest_us += step_us
             self._newest_received_ns = received_ns
             self._repeats = 0
+            if self.not_a_clock:
+                return received_ns
             return remote_ns + self._offset_ns
         if step_us == 0:
             self._repeats += 1

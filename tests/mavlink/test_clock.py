@@ -334,3 +334,26 @@ def test_never_later_than_receipt_and_never_far_behind_the_truth(
             waited = packet.sent_ns - last_unstalled.sent_ns
             bound = least_ns + spread_ns + 0.031 * waited + 2000
             assert t - packet.sent_ns <= bound
+
+
+def test_a_counter_in_time_usec_is_no_clock_and_falls_back_to_receive_time() -> None:
+    """A sender that puts a message counter in time_usec (1 "µs" per 2.5 ms message): judged by
+    its time, every input would look older and older, and never move a motor."""
+    clock = AutopilotClock(32)
+    period_ns = 2_500_000
+    produced = [clock.produced_ns(k + 1, 1_000_000_000 + k * period_ns) for k in range(800)]
+    assert clock.not_a_clock
+    settled = [(k, p) for k, p in enumerate(produced) if k * period_ns > 600_000_000]
+    assert all(p == 1_000_000_000 + k * period_ns for k, p in settled)
+
+
+def test_a_real_clock_through_a_stall_and_a_silence_stays_a_clock() -> None:
+    clock = AutopilotClock(32)
+    period_ns, t0 = 2_500_000, 1_000_000_000
+    for k in range(400):  # 1 s of a stream, 200 µs of transport delay
+        clock.produced_ns(k * 2500 + 1, t0 + k * period_ns + 200_000)
+    # our process stopped for 3 s, the autopilot silent after 0.3 s: read all at once
+    read_at = t0 + 400 * period_ns + 3_000_000_000
+    burst = [clock.produced_ns((400 + k) * 2500 + 1, read_at) for k in range(120)]
+    assert not clock.not_a_clock
+    assert read_at - burst[-1] > 2_500_000_000  # the newest queued input is known to be old
