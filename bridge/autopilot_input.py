@@ -13,8 +13,9 @@ For every chunk read it:
 * decodes the configured motor-output message into the input vector, dates it by the
   autopilot's own clock (:class:`~bridge.mavlink.clock.AutopilotClock`: a packet that sat in a
   buffer is known to be old) and mixes it, refusing NaN, infinite and out-of-range channels;
-* relays the chunk, untouched, to the main process (:mod:`bridge.relay`), which handles
-  everything else the autopilot sends and records it.
+* relays every other frame to the main process (:mod:`bridge.relay`), which handles
+  everything else the autopilot sends; the outputs too when it records the link (it learns
+  how many arrived from the loop's counters).
 
 It writes to the link what the main process relays the other way. Nothing here blocks or logs
 per frame: counters go to :class:`~bridge.mailbox.LoopStats`.
@@ -50,6 +51,7 @@ class InputSetup:
     mixer: MixerDefinition
     valid_range: tuple[float, float]
     channel_range: tuple[float, float] | None  # for axis_channels; None: the mixer's (PWM)
+    relay_outputs: bool = False  # relay the autopilot's outputs too (the recording wants them)
 
 
 class AutopilotInput:
@@ -86,6 +88,10 @@ class AutopilotInput:
         self._decoder = decoder_for(
             mavlink.source, mavlink.autopilot_system_id, mavlink.component_id
         )
+        self._output_ids = self._decoder.msg_ids
+        # The main process gets every frame but the autopilot's outputs, which the loop acts on
+        # and counts; all of them when it records the link.
+        self._relay_outputs = setup.relay_outputs
         self._clock = AutopilotClock(time_bits=64)
         self._clock_bits = 0  # the width of the clock built, set on the first input
         self._scanner = FrameScanner.for_dialect(load_dialect())
@@ -96,6 +102,7 @@ class AutopilotInput:
             else None
         )
         self._transport: AutopilotTransport | None = None
+        self._inputs_seen: list[float] | None = None  # the newest input vector, for reports
         self.fractions: list[float] | None = None
         """The mix of the newest input; None while there is none or it is invalid."""
         slot = stats.slot
@@ -142,10 +149,18 @@ class AutopilotInput:
             if chunk is None:
                 break
             data, received_ns = chunk
-            if self._relay is not None and not self._relay.forward(received_ns, data):
-                self._counters[self._i_relay_dropped] += 1
+            relayed: list[bytes] = []
             for frame in self._scanner.feed(data):
                 fresh |= self._on_frame(frame, received_ns, now_ns)
+                if self._relay_outputs or not (
+                    frame.msg_id in self._output_ids
+                    and frame.sys_id == self._autopilot[0]
+                    and frame.comp_id == self._autopilot[1]
+                ):
+                    relayed.append(frame.raw)
+            relay = self._relay
+            if relayed and relay is not None and not relay.forward(received_ns, b"".join(relayed)):
+                self._counters[self._i_relay_dropped] += 1
         scanner, counters = self._scanner, self._counters
         counters[self._i_frames] = scanner.frames
         counters[self._stats.slot("input_bad_crc")] = scanner.bad_crc
@@ -224,7 +239,8 @@ class AutopilotInput:
         inputs.input_valid = fractions is not None
         inputs.input_produced_ns = produced_ns
         counters[self._i_age] = (now_ns - produced_ns) // 1000
-        self._snapshot.write(produced_ns, fractions, inputs.armed, inputs.armed_heard_ns)
+        self._inputs_seen = values
+        self._snapshot.write(produced_ns, fractions, inputs.armed, inputs.armed_heard_ns, values)
         return True
 
     def _set_armed(self, armed: bool, heard_ns: int) -> None:
@@ -232,4 +248,10 @@ class AutopilotInput:
         inputs.armed = armed
         inputs.armed_heard_ns = max(inputs.armed_heard_ns, heard_ns)
         # Each time (a HEARTBEAT a second): the main process judges the arming state's age too.
-        self._snapshot.write(inputs.input_produced_ns, self.fractions, armed, inputs.armed_heard_ns)
+        self._snapshot.write(
+            inputs.input_produced_ns,
+            self.fractions,
+            armed,
+            inputs.armed_heard_ns,
+            self._inputs_seen,
+        )

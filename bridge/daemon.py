@@ -88,21 +88,6 @@ NOT_SENDING = frozenset(
 )
 
 
-class InputMonitor:
-    """The autopilot's outputs as the main process sees them on the relayed link, for the
-    reports only (``actuators/input``): the control loop acts on its own reading."""
-
-    def __init__(self) -> None:
-        # The newest input vector and when it arrived (replaced, never mutated).
-        self.last_input: tuple[list[float], int] | None = None
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        self.last_input = (values, time_ns)
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        pass  # the loop's own arming state (InputSnapshot) is the one that counts
-
-
 class MotorTestControl:
     """MAV_CMD_DO_MOTOR_TEST: checked on a MAVLink reader thread (:meth:`handle_command`),
     handed to the control loop through shared memory, followed and reported by the supervisor
@@ -395,13 +380,14 @@ class Supervisor:
         )
         setup = LoopSetup(
             config=config,
-            input=InputSetup(plan.mixer, valid_range, plan.input_range),
+            input=InputSetup(
+                plan.mixer, valid_range, plan.input_range, relay_outputs=record_dir is not None
+            ),
             log_level=logging.getLogger().getEffectiveLevel(),
             bus_receive="all" if shares_loop_bus else "none",
         )
         loop_end, main_end = relay_pair()
         self.runner = LoopRunner(setup, self.motor_tests, self.input_snapshot, self.stats, loop_end)
-        self.monitor = InputMonitor()
         self.recording = Recording.open(Path(record_dir), config.can) if record_dir else None
         tlog = self.recording.tlog if self.recording is not None else None
         relayed = [MainConnection(main_end)]
@@ -411,7 +397,8 @@ class Supervisor:
                 raise LinkError("the output loop's relay of the autopilot link is gone")
             return relayed.pop()
 
-        self.link = MavlinkLink(config.mavlink, self.monitor, tlog=tlog, uplink=uplink)
+        # No input sink: the loop acts on the autopilot's outputs and arming, and counts them.
+        self.link = MavlinkLink(config.mavlink, None, tlog=tlog, uplink=uplink)
         self.motor_test = MotorTestControl(
             limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
             config,
@@ -561,18 +548,16 @@ class Supervisor:
 
     def actuators_input(self) -> dict[str, Any] | None:
         """What came in: the autopilot's newest outputs (present channels) and their mix."""
-        last = self.monitor.last_input
         seen = self.input_snapshot.read()
-        if last is None or seen is None:
+        if seen is None or not seen.inputs:
             return None
-        values, _ = last
         return {
             "source": self._config.mavlink.source,
             "armed": seen.armed,
             "age_ms": round((time.monotonic_ns() - seen.produced_ns) / 1e6, 1),
             "channels": {
                 name: value
-                for name, value in zip(INPUT_NAMES, values, strict=False)
+                for name, value in zip(INPUT_NAMES, seen.inputs, strict=False)
                 if value == value  # NaN: channel absent
             },
             "mixed": list(seen.fractions) if seen.valid else None,
@@ -596,6 +581,7 @@ class Supervisor:
 
     def _watch(self) -> None:
         stats = self.stats
+        self.link.note_outputs(stats["input_outputs"], time.monotonic_ns())
         now_s = time.monotonic()
         since_s, ticks = self._output_ticks
         if now_s - since_s >= 1.0:

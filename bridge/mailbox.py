@@ -26,13 +26,17 @@ process when it starts (no named segment to leak), and working the same within o
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import struct
 import zlib
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.mixer import INPUT_NAMES
 from bridge.safety import LoopState
+
+INPUT_VECTOR_LEN = len(INPUT_NAMES)
 
 __all__ = [
     "LATENESS_RING",
@@ -195,15 +199,20 @@ class Snapshot:
     """When the arming state was last heard (monotonic ns); 0 = never."""
     fractions: tuple[float, ...]
     """The mix of the newest input (empty when invalid)."""
+    inputs: tuple[float, ...]
+    """The newest input vector as decoded (``bridge.mixer.INPUT_NAMES`` order, NaN = absent);
+    empty before the first."""
 
 
 class InputSnapshot:
     """The loop's newest input and arming state, for the main process (best-effort reading)."""
 
-    def __init__(self, n_outputs: int, ctx: Any = None) -> None:
+    def __init__(self, n_outputs: int, n_inputs: int = INPUT_VECTOR_LEN, ctx: Any = None) -> None:
         self.n_outputs = n_outputs
-        self._block = SharedBlock(f"qqqq{n_outputs}d", ctx)
-        self._nan = (float("nan"),) * n_outputs
+        self._n_inputs = n_inputs
+        self._block = SharedBlock(f"qqqq{n_outputs}d{n_inputs}d", ctx)
+        self._no_fractions = (math.nan,) * n_outputs
+        self._no_inputs = (math.nan,) * n_inputs
 
     def write(
         self,
@@ -211,10 +220,17 @@ class InputSnapshot:
         fractions: list[float] | None,
         armed: bool,
         armed_heard_ns: int,
+        inputs: list[float] | None,
     ) -> None:
-        """From the loop, on each input and arming change."""
-        values = self._nan if fractions is None else fractions
-        self._block.write(produced_ns, fractions is not None, armed, armed_heard_ns, *values)
+        """From the loop, on each input and each HEARTBEAT."""
+        self._block.write(
+            produced_ns,
+            fractions is not None,
+            armed,
+            armed_heard_ns,
+            *(self._no_fractions if fractions is None else fractions),
+            *(self._no_inputs if inputs is None else inputs),
+        )
 
     def read(self) -> Snapshot | None:
         """The newest snapshot; None before the loop wrote one."""
@@ -222,8 +238,15 @@ class InputSnapshot:
         if record is None:
             return None
         seq, produced_ns, valid, armed, heard_ns, *values = record
+        fractions, inputs = values[: self.n_outputs], values[self.n_outputs :]
         return Snapshot(
-            seq, produced_ns, bool(valid), bool(armed), heard_ns, tuple(values) if valid else ()
+            seq,
+            produced_ns,
+            bool(valid),
+            bool(armed),
+            heard_ns,
+            tuple(fractions) if valid else (),
+            tuple(inputs) if produced_ns else (),
         )
 
 

@@ -339,11 +339,14 @@ class MavlinkLink:
     def __init__(
         self,
         config: MavlinkConfig,
-        sink: InputSink,
+        sink: InputSink | None,
         tlog: BinaryIO | None = None,
         uplink: Callable[[], Any] | None = None,
     ) -> None:
-        """``tlog``: a binary file to record into (see the class docstring), or None.
+        """``sink``: receives the autopilot's outputs and arming state; None when the owner of
+        the autopilot's link acts on them (the daemon's control loop), which then reports the
+        outputs it counted through :meth:`note_outputs`.
+        ``tlog``: a binary file to record into (see the class docstring), or None.
         ``uplink``: opens the autopilot's connection (an object with pymavlink's transport
         methods: ``fd``, ``recv``, ``write``, ``close``); None: pymavlink's transport for
         ``config.url``. The daemon passes the control loop's relay
@@ -386,6 +389,7 @@ class MavlinkLink:
         # Arrival-rate window, owned by the autopilot's reader thread.
         self._window_start_ns = 0
         self._window_count = 0
+        self._outputs_noted = 0  # the last total given to note_outputs
         self._logged_rate_hz = 0.0
         self._requesting = False
         self._foreign_seen: set[tuple[int, int]] = set()
@@ -850,8 +854,11 @@ class MavlinkLink:
             return
         if not is_output:
             self.stats.last_heartbeat_ns = now
-            self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
+            if self._sink is not None:
+                self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
             return
+        if self._sink is None:
+            return  # the link's owner acts on outputs and counts them (note_outputs)
         decoded = self._decoder.decode(_frame_of(msg))
         if decoded is not None:
             self._note_output(now)
@@ -897,18 +904,28 @@ class MavlinkLink:
         )
         self._send_on(connection, ack)
 
-    def _note_output(self, now: int) -> None:
-        """Count an output and update the arrival-rate estimate."""
-        self.stats.outputs += 1
+    def note_outputs(self, total: int, now_ns: int) -> None:
+        """Output messages counted by whoever reads them (the control loop, which owns the
+        autopilot's link and relays them only when recording): ``total`` since start, as of
+        ``now_ns``. Keeps the arrival rate, its log line and the stream requests going as if
+        this link had read them; call it a few times a second."""
+        new = total - self._outputs_noted
+        self._outputs_noted = total
+        if new > 0:
+            self._note_output(now_ns, new)
+
+    def _note_output(self, now: int, count: int = 1) -> None:
+        """Count outputs and update the arrival-rate estimate."""
+        self.stats.outputs += count
         if self._window_count == 0 or now - self.stats.last_output_ns > _RATE_WINDOW_NS:
-            self._window_start_ns, self._window_count = now, 1
+            self._window_start_ns, self._window_count = now, count
         else:
-            self._window_count += 1
+            self._window_count += count
             elapsed = now - self._window_start_ns
             if elapsed >= _RATE_WINDOW_NS:
-                rate = (self._window_count - 1) * 1e9 / elapsed
+                rate = (self._window_count - count) * 1e9 / elapsed
                 self.stats.output_rate_hz = rate
-                self._window_start_ns, self._window_count = now, 1
+                self._window_start_ns, self._window_count = now, count
                 logged = self._logged_rate_hz
                 if logged == 0 or abs(rate - logged) > _RATE_LOG_CHANGE * logged:
                     self._logged_rate_hz = rate

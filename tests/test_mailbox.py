@@ -4,6 +4,7 @@ collision, never "nothing" or "disarmed" because a write was in progress."""
 from __future__ import annotations
 
 import copy
+import math
 import multiprocessing
 import struct
 import time
@@ -67,13 +68,15 @@ def _tear(block: SharedBlock) -> None:
 
 def test_a_collision_keeps_the_last_good_read_instead_of_nothing() -> None:
     snapshot = InputSnapshot(4)
-    snapshot.write(1_000, [0.5, 0.5, 0.5, 0.5], True, 2_000)
+    vector = [1500.0] * 4 + [math.nan] * 32
+    snapshot.write(1_000, [0.5, 0.5, 0.5, 0.5], True, 2_000, vector)
     first = snapshot.read()
     assert first is not None and first.armed and first.fractions == (0.5, 0.5, 0.5, 0.5)
+    assert first.inputs[:4] == (1500.0,) * 4 and len(first.inputs) == 36
     _tear(snapshot._block)
     again = snapshot.read()
     assert again == first  # not None, not disarmed: the last whole record
-    snapshot.write(3_000, None, False, 4_000)  # the writer finishes a later record
+    snapshot.write(3_000, None, False, 4_000, vector)  # the writer finishes a later record
     latest = snapshot.read()
     assert latest is not None and not latest.armed and not latest.valid
     assert latest.produced_ns == 3_000 and latest.fractions == ()
