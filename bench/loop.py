@@ -25,7 +25,6 @@ import multiprocessing
 import os
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -33,24 +32,13 @@ from pathlib import Path
 from typing import Any
 
 import can
+from _common import GROUP, bridge_command, children, cpu_seconds, free_port
 from _stats import percentile
 
 from bridge.escs import ckesc
 
-GROUP = "239.74.163.2"
-ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 INPUT_RATE_HZ = 400
 TELEMETRY_HZ = (50, 10, 2)  # MSG1, MSG2, MSG3 per ESC
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def _bus(port: int) -> can.BusABC:
@@ -158,30 +146,6 @@ class Result:
     seen_pct: float  # inputs that reached the bus: a run that ignored its input is no result
 
 
-def _cpu_seconds(pids: list[int]) -> float:
-    total = 0.0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-    return total
-
-
-def _children(pid: int) -> list[int]:
-    kids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(stat[1]) == pid:
-                kids.append(int(entry.name))
-    return kids
-
-
 def _daemon_config(path: Path, rate_hz: int, n_escs: int, latency: str) -> Path:
     mixer = path / f"passthrough-{n_escs}.toml"
     outputs = "".join(
@@ -203,7 +167,7 @@ def run_case(
 ) -> Result | str:
     """The measurements of one case, or why the daemon refused to run it."""
     ctx = multiprocessing.get_context("spawn")
-    mavlink_port, can_port = _free_port(), _free_port()
+    mavlink_port, can_port = free_port(), free_port()
     observer = _bus(can_port)
     with tempfile.TemporaryDirectory() as tmp:
         if latency is None:
@@ -216,24 +180,7 @@ def run_case(
         else:
             config = _daemon_config(Path(tmp), rate_hz, n_escs, latency)
             proc = subprocess.Popen(
-                [
-                    ESC_BRIDGE,
-                    "run",
-                    "--config",
-                    str(config),
-                    "--log-level",
-                    "warning",
-                    "--mavlink",
-                    f"udpin:127.0.0.1:{mavlink_port}",
-                    "--can-interface",
-                    "udp_multicast",
-                    "--can-channel",
-                    GROUP,
-                    "--can-option",
-                    f"port={can_port}",
-                    "--can-option",
-                    "hop_limit=0",
-                ],
+                [*bridge_command(mavlink_port, can_port, "warning"), "--config", str(config)],
             )
             pid = proc.pid
         time.sleep(1.5)  # the daemon spawns its loop process
@@ -253,8 +200,8 @@ def run_case(
         pids = [pid]
         while (elapsed := time.monotonic() - start) < seconds + warmup:
             if cpu_start == 0.0 and elapsed >= warmup:
-                pids = [pid, *_children(pid)]
-                cpu_start = _cpu_seconds(pids)
+                pids = [pid, *children(pid)]
+                cpu_start = cpu_seconds(pids)
                 cpu_t0 = time.monotonic()
             msg = observer.recv(0.1)
             # Every 12b group has the same CAN ID; the group number is byte 6.
@@ -263,7 +210,7 @@ def run_case(
             if elapsed < warmup:
                 continue
             frames.append((msg.timestamp, (msg.data[0] | (msg.data[1] & 0x0F) << 8)))
-        cpu_pct = 100 * (_cpu_seconds(pids) - cpu_start) / (time.monotonic() - cpu_t0)
+        cpu_pct = 100 * (cpu_seconds(pids) - cpu_start) / (time.monotonic() - cpu_t0)
         sends: list[tuple[int, float]] = sends_q.get(timeout=30)
         pilot.join()
         esc.join()

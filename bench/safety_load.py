@@ -58,62 +58,46 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager, suppress
+from contextlib import suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
+from _common import (
+    GROUP,
+    MAX_DATAGRAM,
+    bridge_command,
+    cpu_seconds,
+    free_port,
+    ignore_sigint,
+    log_tail,
+    machine_busy_seconds,
+    multicast_listener,
+    num,
+    processes,
+    raise_interrupt,
+    recv_stamped,
+    socket_inodes,
+    udp_sockets,
+)
 from _stats import percentile
 from can.interfaces.udp_multicast.utils import unpack_message
 
 from bridge.errors import BridgeError, CodecError
 from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
-from bridge.sim.load import PRESETS, LoadReport, preset
+from bridge.sim.load import PRESETS, LoadReport, preset, stat_fields
 
-GROUP = "239.74.163.2"
-ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 OUTPUT_RATE_HZ = {"ckesc": 400, "ft": 100}  # per stream: CKESC group 1, each FT ESC
 MOTORS = 4
 PILOT_HZ = 200
 HEARTBEAT_EVERY = PILOT_HZ  # 1 Hz
 PWM_US = 1500
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
-SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)
-OBSERVER_RCVBUF = 8 << 20
-TIMESPEC = struct.Struct("@ll")
-MAX_DATAGRAM = 4096
 START_TIMEOUT_S = 30.0
 
 
 # -- sockets, scheduling, /proc -------------------------------------------------------------
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
-def _multicast_listener(port: int) -> socket.socket:
-    """A socket on the bus, as python-can's udp_multicast opens it, with a large buffer."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, OBSERVER_RCVBUF)
-    except PermissionError:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, OBSERVER_RCVBUF)
-    sock.bind(("", port))
-    request = socket.inet_aton(GROUP) + struct.pack("@I", socket.INADDR_ANY)
-    sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, request)
-    return sock
 
 
 def _only_from_port(sock: socket.socket, port: int) -> ctypes.Array[ctypes.c_char]:
@@ -134,44 +118,16 @@ def _only_from_port(sock: socket.socket, port: int) -> ctypes.Array[ctypes.c_cha
     return code
 
 
-def _recv_stamped(sock: socket.socket) -> tuple[bytes, int, float]:
-    """One datagram, its sender's port and its kernel receive time (wall clock, s)."""
-    data, ancillary, _flags, sender = sock.recvmsg(MAX_DATAGRAM, socket.CMSG_SPACE(TIMESPEC.size))
-    stamp = time.time()
-    for level, kind, payload in ancillary:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-            seconds, nanoseconds = TIMESPEC.unpack(payload[: TIMESPEC.size])
-            stamp = seconds + nanoseconds * 1e-9
-    return data, int(sender[1]), stamp
-
-
 def _socket_drops(sock: socket.socket) -> int | None:
     """The kernel's drop count of ``sock`` (from /proc/net/udp), None if not found."""
-    inode = os.fstat(sock.fileno()).st_ino
-    with suppress(OSError):
-        for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
-            fields = line.split()
-            if int(fields[9]) == inode:
-                return int(fields[12])
-    return None
+    found = udp_sockets(sock.getsockname()[1]).get(os.fstat(sock.fileno()).st_ino)
+    return None if found is None else found.drops
 
 
 def _holds_bus(pid: int, port: int) -> bool:
     """Whether ``pid`` or a process under it holds a UDP socket bound to ``port``."""
-    inodes = set()
-    for member in _tree(pid):
-        with suppress(OSError):
-            for fd in os.listdir(f"/proc/{member}/fd"):
-                with suppress(OSError):
-                    target = os.readlink(f"/proc/{member}/fd/{fd}")
-                    if target.startswith("socket:["):
-                        inodes.add(int(target[8:-1]))
-    with suppress(OSError):
-        for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
-            fields = line.split()
-            if int(fields[1].rsplit(":", 1)[1], 16) == port and int(fields[9]) in inodes:
-                return True
-    return False
+    inodes = {inode for member in _tree(pid) for inode in socket_inodes(member)}
+    return not inodes.isdisjoint(udp_sockets(port))
 
 
 def _set_fifo(priority: int) -> str | None:
@@ -185,23 +141,11 @@ def _set_fifo(priority: int) -> str | None:
     return None
 
 
-def _ignore_sigint() -> None:
-    """Workers leave Ctrl-C to the parent, which stops them."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _stat(pid: int) -> list[str] | None:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-
-
 def _tree(pid: int) -> list[int]:
     """``pid`` and every live process under it (the daemon, its output loop, its helpers)."""
     parents: dict[int, list[int]] = {}
     for entry in os.scandir("/proc"):
-        if entry.name.isdigit() and (fields := _stat(int(entry.name))) is not None:
+        if entry.name.isdigit() and (fields := stat_fields(int(entry.name))) is not None:
             parents.setdefault(int(fields[1]), []).append(int(entry.name))
     found, todo = [], [pid]
     while todo:
@@ -209,21 +153,6 @@ def _tree(pid: int) -> list[int]:
         found.append(current)
         todo.extend(parents.get(current, []))
     return found
-
-
-def _cpu_seconds(pids: Sequence[int]) -> float:
-    """User + system time of ``pids``, each as of now (a process gone counts 0)."""
-    total = 0
-    for pid in pids:
-        if (fields := _stat(pid)) is not None:
-            total += int(fields[11]) + int(fields[12])
-    return total / CLOCK_TICKS
-
-
-def _machine_busy_seconds() -> float:
-    """CPU time all CPUs spent on anything but idle and I/O wait since boot."""
-    fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    return (sum(fields[:8]) - fields[3] - fields[4]) / CLOCK_TICKS
 
 
 # -- the observer process -------------------------------------------------------------------
@@ -290,10 +219,10 @@ def observer_worker(
 
     ``seen`` counts them live; ``first_nonzero`` gets the kernel time of the first non-zero one.
     """
-    _ignore_sigint()
+    ignore_sigint()
     fifo_problem = _set_fifo(priority)
     gc.disable()  # no collector pauses; nothing here makes reference cycles
-    sock = _multicast_listener(can_port)
+    sock = multicast_listener(can_port)
     program = _only_from_port(sock, can_port) if filtered else None
     sock.setblocking(False)
     drops_before = _socket_drops(sock)
@@ -304,7 +233,7 @@ def observer_worker(
             continue
         with suppress(BlockingIOError):
             while True:
-                data, sender_port, stamp = _recv_stamped(sock)
+                data, sender_port, stamp = recv_stamped(sock)
                 if sender_port != can_port:  # not the bridge's bus socket: a flood's junk
                     continue
                 command = _command(protocol, data, stamp)
@@ -336,7 +265,7 @@ class PilotReport:
 def pilot_worker(mavlink_port: int, priority: int, stop: Any, ready: Any, out: Any) -> None:
     """Armed HEARTBEAT at 1 Hz and SERVO_OUTPUT_RAW at 200 Hz (PWM 1500 on motors 1..4)
     until ``stop`` is set; whatever the bridge sends back is read and dropped."""
-    _ignore_sigint()
+    ignore_sigint()
     fifo_problem = _set_fifo(priority)
     gc.disable()
     dialect = load_dialect()
@@ -413,58 +342,12 @@ class Run:
         return self.lost_kernel if self.lost_kernel is not None else self.lost_transfer_ids
 
 
-class _Processes:
-    """Everything a run started, stopped however the run ends (loads stop on their own)."""
-
-    def __init__(self) -> None:
-        self.daemon: subprocess.Popen[bytes] | None = None
-        self.workers: list[tuple[Any, Any]] = []  # (process, its stop event)
-
-    def stop_all(self) -> None:
-        for _proc, stop in self.workers:
-            stop.set()
-        if self.daemon is not None and self.daemon.poll() is None:
-            self.daemon.send_signal(signal.SIGTERM)
-            try:
-                self.daemon.wait(15)
-            except subprocess.TimeoutExpired:
-                self.daemon.kill()  # its loop process follows: it watches its parent
-                self.daemon.wait()
-        for proc, _stop in self.workers:
-            proc.join(5)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
-
-
-@contextmanager
-def _processes() -> Iterator[_Processes]:
-    procs = _Processes()
-    try:
-        yield procs
-    finally:
-        procs.stop_all()
-
-
 def _bridge_args(
     args: argparse.Namespace, protocol: str, mavlink_port: int, can_port: int
 ) -> list[str]:
     """``esc-bridge run`` with flags only (a --bridge-config file is the one extra)."""
     command = [
-        ESC_BRIDGE,
-        "run",
-        "--log-level",
-        "info",
-        "--mavlink",
-        f"udpin:127.0.0.1:{mavlink_port}",
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        GROUP,
-        "--can-option",
-        f"port={can_port}",
-        "--can-option",
-        "hop_limit=0",
+        *bridge_command(mavlink_port, can_port, "info"),
         "--bitrate",
         "1000000",
         "--protocol",
@@ -483,10 +366,6 @@ def _bridge_args(
     return command
 
 
-def _log_tail(path: Path, lines: int = 15) -> str:
-    return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
-
-
 def _wait_for(
     done: Any, timeout_s: float, what: str, daemon: subprocess.Popen[bytes], log_path: Path
 ) -> None:
@@ -495,10 +374,10 @@ def _wait_for(
     while not done():
         if daemon.poll() is not None:
             raise RuntimeError(
-                f"the bridge exited (code {daemon.returncode}) {what}:\n{_log_tail(log_path)}"
+                f"the bridge exited (code {daemon.returncode}) {what}:\n{log_tail(log_path)}"
             )
         if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out {what}:\n{_log_tail(log_path)}")
+            raise RuntimeError(f"timed out {what}:\n{log_tail(log_path)}")
         time.sleep(0.02)
 
 
@@ -512,10 +391,11 @@ def run_once(
 ) -> tuple[Run, list[Command], list[float], float, float]:
     """One run; the raw commands and autopilot sends come back beside the Run for analysis."""
     run = Run(load_name, protocol, index)
-    mavlink_port, can_port = _free_port(), _free_port()
+    mavlink_port, can_port = free_port(), free_port()
     loads = preset(load_name, can_port=can_port, group=GROUP)
     filtered = any(load.spec.kind == "can_flood" for load in loads)
-    with tempfile.TemporaryDirectory() as tmp, _processes() as procs:
+    # Whatever the run started stops however it ends; the loads stop on their own (``with``).
+    with tempfile.TemporaryDirectory() as tmp, processes(daemon_timeout_s=15) as procs:
         stop_observer, observer_ready = ctx.Event(), ctx.Event()
         seen = ctx.Value("q", 0, lock=False)
         first_nonzero = ctx.Value("d", 0.0, lock=False)
@@ -536,7 +416,7 @@ def run_once(
             name="observer",
         )
         observer.start()
-        procs.workers.append((observer, stop_observer))
+        procs.add_worker(observer, stop_observer)
         if not observer_ready.wait(START_TIMEOUT_S):
             raise RuntimeError("the observer process did not start")
         log_path = Path(tmp) / "bridge.log"
@@ -567,7 +447,7 @@ def run_once(
                 name="autopilot",
             )
             pilot.start()
-            procs.workers.append((pilot, stop_pilot))
+            procs.add_worker(pilot, stop_pilot)
             _wait_for(
                 lambda: first_nonzero.value > 0.0,
                 START_TIMEOUT_S,
@@ -580,15 +460,15 @@ def run_once(
             bridge_pids = _tree(daemon.pid)
             start = (
                 time.monotonic(),
-                _cpu_seconds(bridge_pids),
+                cpu_seconds(bridge_pids),
                 loads.cpu_seconds(),
-                _machine_busy_seconds(),
+                machine_busy_seconds(),
             )
             _sleep_watching(max(0.0, t1 - time.time()), daemon, log_path)
             elapsed = time.monotonic() - start[0]
-            run.bridge_cpu_pct = 100 * (_cpu_seconds(bridge_pids) - start[1]) / elapsed
+            run.bridge_cpu_pct = 100 * (cpu_seconds(bridge_pids) - start[1]) / elapsed
             run.load_cpu_pct = 100 * (loads.cpu_seconds() - start[2]) / elapsed
-            run.machine_pct = 100 * (_machine_busy_seconds() - start[3]) / elapsed
+            run.machine_pct = 100 * (machine_busy_seconds() - start[3]) / elapsed
             time.sleep(0.05)  # frames sent at t1 reach the observer
             stop_pilot.set()
             pilot_report: PilotReport = pilot_q.get(timeout=30)
@@ -609,7 +489,7 @@ def run_once(
         ]
         if run.daemon_exit not in (0, None):
             run.problems.append(
-                f"the bridge exited with code {run.daemon_exit}:\n{_log_tail(log_path)}"
+                f"the bridge exited with code {run.daemon_exit}:\n{log_tail(log_path)}"
             )
     run.pilot_fifo = pilot_report.fifo_problem
     run.observer_fifo = observed.fifo_problem
@@ -671,12 +551,6 @@ def analyse(run: Run, commands: list[Command], sends: list[float], t0: float, t1
 
 
 # -- the report -----------------------------------------------------------------------------
-
-
-def _num(value: float | int | None, spec: str, width: int) -> str:
-    if value is None or value != value:  # None or NaN
-        return f"{'-':>{width}}"
-    return f"{value:>{width}{spec}}"
 
 
 def _median_range(values: list[int | None], width: int) -> str:
@@ -747,10 +621,10 @@ def print_row(row: Row) -> None:
         f"{row.load:<18} {row.protocol:<5} {row.runs:>4d} {row.frames:>7.0f} "
         f"{_median_range(list(row.zero), 12)} {_median_range(list(row.spells), 10)} "
         f"{row.longest_spell_ms:>10.1f} {_median_range(row.lost, 8)} "
-        f"{_num(row.pilot_max_gap_ms, '.1f', 12)} {_num(row.rate_hz, '.1f', 7)} "
-        f"{_num(row.period_err_p50_us, '.0f', 7)} {_num(row.period_err_p99_us, '.0f', 7)} "
-        f"{_num(row.bridge_cpu_pct, '.1f', 8)} {_num(row.load_cpu_pct, '.0f', 6)} "
-        f"{_num(row.machine_pct, '.0f', 9)}",
+        f"{num(row.pilot_max_gap_ms, '.1f', 12)} {num(row.rate_hz, '.1f', 7)} "
+        f"{num(row.period_err_p50_us, '.0f', 7)} {num(row.period_err_p99_us, '.0f', 7)} "
+        f"{num(row.bridge_cpu_pct, '.1f', 8)} {num(row.load_cpu_pct, '.0f', 6)} "
+        f"{num(row.machine_pct, '.0f', 9)}",
         flush=True,
     )
 
@@ -807,10 +681,6 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def _raise_interrupt(_signum: int, _frame: FrameType | None) -> None:
-    raise KeyboardInterrupt
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0, help="armed time measured per run")
@@ -843,7 +713,7 @@ def main() -> int:
     args = parser.parse_args()
     if args.seconds <= 0 or args.repeat < 1 or args.settle < 0:
         parser.error("--seconds must be > 0, --repeat >= 1 and --settle >= 0")
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    signal.signal(signal.SIGTERM, raise_interrupt)
     ctx = multiprocessing.get_context("spawn")
     print(
         f"safety under load: {args.seconds:g} s armed per run after {args.settle:g} s of load; "

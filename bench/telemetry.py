@@ -45,21 +45,37 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
+from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
+from _common import (
+    GROUP,
+    SO_TIMESTAMPNS,
+    UdpSocket,
+    bridge_command,
+    children,
+    cpu_seconds,
+    free_port,
+    ignore_sigint,
+    log_tail,
+    machine_busy_seconds,
+    multicast_listener,
+    num,
+    process_sockets,
+    processes,
+    raise_interrupt,
+    recv_stamped,
+    udp_sockets,
+)
 from _stats import percentile
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 from bridge.escs import ckesc
 from bridge.mavlink import load_dialect
 
-GROUP = "239.74.163.2"
-ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 OUTPUT_RATE_HZ = 400
 INPUT_RATE_HZ = 200  # SERVO_OUTPUT_RAW; HEARTBEAT (armed) at 10 Hz
 SATURATED_FPS = 6250  # 1 Mbit/s over ~160 bits per extended frame with 8 data bytes
@@ -70,15 +86,9 @@ BASE_RPM = 5000
 FIRST_MARKER_RPM = 20_000  # marker rpms count up from here (MSG1 speed is u16)
 # Per node and cycle: MSG1 four times, MSG2 twice, MSG3 and MSG_EXP1 once each.
 SLOT_KINDS = ("msg1", "msg2", "msg1", "msg3", "msg1", "msg2", "msg1", "exp1")
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
-SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
-OBSERVER_RCVBUF = 8 << 20
 RX_SAMPLE_S = 0.05
 DRAINED_BYTES = 16 << 10  # ~20 frames: the commands keep arriving, so never quite 0
 STALL_S = 0.010  # a pause of the ESC process longer than this is noted
-TIMESPEC = struct.Struct("@ll")
-MAX_DATAGRAM = 4096
 CAN_IN = re.compile(
     r"CAN in: (\d+) frames read, (\d+) telemetry, (\d+) malformed, (\d+) read errors; "
     r"(\d+) of (\d+) ESCs online"
@@ -92,92 +102,11 @@ LOOP_SUMMARY = re.compile(
 # -- sockets and /proc --------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 def _multicast_sender() -> socket.socket:
     """A socket that sends to the bus (TTL 0: never leaves this machine) and joins nothing."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 0))
     return sock
-
-
-def _multicast_listener(port: int) -> socket.socket:
-    """A socket on the bus, as python-can's udp_multicast opens it, with a large buffer."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, OBSERVER_RCVBUF)
-    except PermissionError:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, OBSERVER_RCVBUF)
-    sock.bind(("", port))
-    request = socket.inet_aton(GROUP) + struct.pack("@I", socket.INADDR_ANY)
-    sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, request)
-    return sock
-
-
-def _recv_stamped(sock: socket.socket) -> tuple[bytes, int, float]:
-    """One datagram, its sender's port and its kernel receive time (wall clock, s)."""
-    data, ancillary, _flags, sender = sock.recvmsg(MAX_DATAGRAM, socket.CMSG_SPACE(TIMESPEC.size))
-    stamp = time.time()
-    for level, kind, payload in ancillary:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-            seconds, nanoseconds = TIMESPEC.unpack(payload[: TIMESPEC.size])
-            stamp = seconds + nanoseconds * 1e-9
-    return data, int(sender[1]), stamp
-
-
-@dataclass(frozen=True)
-class UdpSocket:
-    """One line of /proc/net/udp."""
-
-    inode: int
-    rx_queue_bytes: int
-    drops: int
-
-
-def _udp_sockets(port: int) -> dict[int, UdpSocket]:
-    """Every IPv4 UDP socket bound to ``port``, by inode."""
-    found = {}
-    with suppress(OSError):
-        for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
-            fields = line.split()
-            if int(fields[1].rsplit(":", 1)[1], 16) != port:
-                continue
-            inode = int(fields[9])
-            found[inode] = UdpSocket(inode, int(fields[4].split(":")[1], 16), int(fields[12]))
-    return found
-
-
-def _socket_inodes(pid: int) -> set[int]:
-    inodes = set()
-    with suppress(OSError):
-        for fd in os.listdir(f"/proc/{pid}/fd"):
-            with suppress(OSError):
-                target = os.readlink(f"/proc/{pid}/fd/{fd}")
-                if target.startswith("socket:["):
-                    inodes.add(int(target[8:-1]))
-    return inodes
-
-
-def _process_sockets(pid: int, port: int) -> list[UdpSocket]:
-    """The UDP sockets on ``port`` that process ``pid`` holds."""
-    mine = _socket_inodes(pid)
-    return [s for inode, s in _udp_sockets(port).items() if inode in mine]
-
-
-def _cpu_seconds(pid: int) -> float:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
 def _run_delay_seconds(pid: int) -> float:
@@ -190,30 +119,14 @@ def _run_delay_seconds(pid: int) -> float:
     return total / 1e9
 
 
-def _machine_busy_seconds() -> float:
-    """CPU time all CPUs spent on anything but idle and I/O wait since boot."""
-    fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    return (sum(fields[:8]) - fields[3] - fields[4]) / CLOCK_TICKS
-
-
 def _spawned_children(pid: int) -> list[int]:
     """The multiprocessing children of ``pid`` (the output loop; not the resource tracker)."""
     kids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-                cmdline = (entry / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if int(stat[1]) == pid and b"spawn_main" in cmdline:
-                kids.append(int(entry.name))
+    for kid in children(pid):
+        with suppress(OSError):
+            if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                kids.append(kid)
     return kids
-
-
-def _ignore_sigint() -> None:
-    """Workers leave Ctrl-C to the parent, which stops them."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 # -- the ESC process ------------------------------------------------------------------------
@@ -258,7 +171,7 @@ def esc_worker(port: int, n_escs: int, fps: float, end_wall: float, seed: int, o
     MSG1 carrying it goes out at once (its send time is noted) and node 1's later MSG1 and
     MSG_EXP1 frames carry it until the next marker.
     """
-    _ignore_sigint()
+    ignore_sigint()
     rng = random.Random(seed)
     sock = _multicast_sender()
     dest = (GROUP, port)
@@ -343,7 +256,7 @@ def autopilot_worker(mavlink_port: int, n_escs: int, stop: Any, out: Any) -> Non
     """Armed HEARTBEAT at 10 Hz and SERVO_OUTPUT_RAW at 200 Hz until ``stop`` is set; every
     MAVLink message the daemon sends back is parsed with the project's dialect, and ESC_STATUS
     for ESCs 0..3 is noted with its kernel receive time."""
-    _ignore_sigint()
+    ignore_sigint()
     dialect = load_dialect()
     mav = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
     parser = dialect.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -371,7 +284,7 @@ def autopilot_worker(mavlink_port: int, n_escs: int, stop: Any, out: Any) -> Non
         while (left := deadline - time.monotonic()) > 0:
             if not select.select([sock], [], [], left)[0]:
                 break
-            data, _port, stamp = _recv_stamped(sock)
+            data, _port, stamp = recv_stamped(sock)
             try:
                 messages = parser.parse_buffer(data) or []
             except dialect.MAVError:
@@ -456,48 +369,6 @@ def _daemon_config(path: Path, n_escs: int, esc_status_hz: float, zenoh: bool) -
     return config
 
 
-def _log_tail(path: Path, text: str | None = None, lines: int = 15) -> str:
-    if text is None:
-        text = path.read_text(errors="replace")
-    return "\n".join(text.splitlines()[-lines:])
-
-
-class Processes:
-    """Everything a run started, stopped in reverse order however the run ends."""
-
-    def __init__(self) -> None:
-        self.daemons: list[subprocess.Popen[bytes]] = []
-        self.workers: list[Any] = []
-
-    def stop_all(self) -> None:
-        for proc in self.workers:
-            if proc.is_alive():
-                proc.terminate()
-        for daemon in self.daemons:
-            if daemon.poll() is None:
-                daemon.send_signal(signal.SIGTERM)
-        for daemon in self.daemons:
-            try:
-                daemon.wait(10)
-            except subprocess.TimeoutExpired:
-                daemon.kill()  # its loop process follows: it watches its parent
-                daemon.wait()
-        for proc in self.workers:
-            proc.join(5)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
-
-
-@contextmanager
-def _processes() -> Iterator[Processes]:
-    procs = Processes()
-    try:
-        yield procs
-    finally:
-        procs.stop_all()
-
-
 def _wait_for(
     predicate: Callable[[], bool], timeout_s: float, what: str, daemon: subprocess.Popen[bytes]
 ) -> None:
@@ -514,11 +385,11 @@ def run_case(
     run: Run, n_escs: int, seconds: float, warmup: float, fps: float, zenoh: bool, seed: int
 ) -> Run:
     ctx = multiprocessing.get_context("spawn")
-    mavlink_port, can_port = _free_port(), _free_port()
+    mavlink_port, can_port = free_port(), free_port()
     with (
-        _multicast_listener(can_port) as observer,
+        multicast_listener(can_port) as observer,
         tempfile.TemporaryDirectory() as tmp,
-        _processes() as procs,
+        processes(daemon_timeout_s=10) as procs,
     ):
         observer.setblocking(False)
         observer_inode = os.fstat(observer.fileno()).st_ino
@@ -526,39 +397,22 @@ def run_case(
         log_path = Path(tmp) / "daemon.log"
         with log_path.open("wb") as log_file:
             daemon = subprocess.Popen(
-                [
-                    ESC_BRIDGE,
-                    "run",
-                    "--config",
-                    str(config),
-                    "--log-level",
-                    "info",
-                    "--mavlink",
-                    f"udpin:127.0.0.1:{mavlink_port}",
-                    "--can-interface",
-                    "udp_multicast",
-                    "--can-channel",
-                    GROUP,
-                    "--can-option",
-                    f"port={can_port}",
-                    "--can-option",
-                    "hop_limit=0",
-                ],
+                [*bridge_command(mavlink_port, can_port, "info"), "--config", str(config)],
                 stdout=log_file,
                 stderr=subprocess.STDOUT,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"},
             )
-        procs.daemons.append(daemon)
+        procs.daemon = daemon
         # The CAN reader's socket (the only one on the bus in the main process) exists once the
         # output loop is up: from then on the kernel queues every frame for it.
         _wait_for(
-            lambda: bool(_process_sockets(daemon.pid, can_port)),
+            lambda: bool(process_sockets(daemon.pid, can_port)),
             30.0,
             "before its CAN reader opened the bus",
             daemon,
         )
         loop_pids = _spawned_children(daemon.pid)
-        reader_sockets = _process_sockets(daemon.pid, can_port)
+        reader_sockets = process_sockets(daemon.pid, can_port)
         if len(reader_sockets) != 1:
             run.problems.append(f"the daemon holds {len(reader_sockets)} sockets on the bus, not 1")
         reader_inode = reader_sockets[0].inode
@@ -569,7 +423,7 @@ def run_case(
             target=autopilot_worker, args=(mavlink_port, n_escs, stop_pilot, pilot_q)
         )
         pilot.start()
-        procs.workers.append(pilot)
+        procs.add_worker(pilot)
         time.sleep(1.0)  # the autopilot's interpreter starts; the daemon arms
         window_start = time.time() + warmup
         window_end = window_start + seconds
@@ -581,7 +435,7 @@ def run_case(
                 target=esc_worker, args=(can_port, n_escs, fps, window_end, seed, esc_q)
             )
             esc.start()
-            procs.workers.append(esc)
+            procs.add_worker(esc)
             esc_pid = esc.pid or 0
 
         group1: list[float] = []  # kernel times of group-1 command frames
@@ -592,10 +446,10 @@ def run_case(
             if cpu_start is None and now >= window_start:
                 cpu_start = (
                     time.monotonic(),
-                    _cpu_seconds(daemon.pid),
-                    sum(_cpu_seconds(p) for p in loop_pids),
-                    sum(_cpu_seconds(p) for p in bench_pids) + _cpu_seconds(esc_pid),
-                    _machine_busy_seconds(),
+                    cpu_seconds([daemon.pid]),
+                    cpu_seconds(loop_pids),
+                    cpu_seconds([*bench_pids, esc_pid]),
+                    machine_busy_seconds(),
                     _run_delay_seconds(daemon.pid),
                 )
             if now >= next_sample:  # the reader socket's backlog and drops, every 50 ms
@@ -603,9 +457,9 @@ def run_case(
                 if daemon.poll() is not None:
                     raise RuntimeError(
                         f"the daemon exited during the run (code {daemon.returncode}):\n"
-                        + _log_tail(log_path)
+                        + log_tail(log_path)
                     )
-                sample = _udp_sockets(can_port).get(reader_inode)
+                sample = udp_sockets(can_port).get(reader_inode)
                 if sample is not None:
                     run.reader_peak_bytes = max(run.reader_peak_bytes, sample.rx_queue_bytes)
                     if sample.drops > reader_drops:
@@ -615,7 +469,7 @@ def run_case(
                 continue
             with suppress(BlockingIOError):
                 while True:
-                    data, sender_port, stamp = _recv_stamped(observer)
+                    data, sender_port, stamp = recv_stamped(observer)
                     if sender_port != can_port:  # the ESC process's sending socket
                         run.observed_telemetry += 1
                         continue
@@ -630,12 +484,12 @@ def run_case(
                         group1.append(stamp)
         assert cpu_start is not None
         elapsed = time.monotonic() - cpu_start[0]
-        run.cpu_main_pct = 100 * (_cpu_seconds(daemon.pid) - cpu_start[1]) / elapsed
-        loop_cpu = sum(_cpu_seconds(p) for p in loop_pids)
+        run.cpu_main_pct = 100 * (cpu_seconds([daemon.pid]) - cpu_start[1]) / elapsed
+        loop_cpu = cpu_seconds(loop_pids)
         run.cpu_loop_pct = 100 * (loop_cpu - cpu_start[2]) / elapsed
-        run.cpu_machine_pct = 100 * (_machine_busy_seconds() - cpu_start[4]) / elapsed
+        run.cpu_machine_pct = 100 * (machine_busy_seconds() - cpu_start[4]) / elapsed
         run.main_waiting_pct = 100 * (_run_delay_seconds(daemon.pid) - cpu_start[5]) / elapsed
-        bench_cpu = sum(_cpu_seconds(p) for p in bench_pids) - cpu_start[3]
+        bench_cpu = cpu_seconds(bench_pids) - cpu_start[3]
         if run.telemetry:
             run.esc = esc_q.get(timeout=30)
             bench_cpu += run.esc.cpu_s  # it has ended (with the window) by now
@@ -643,22 +497,22 @@ def run_case(
         # Let the reader drain what the kernel still holds for it before asking for its count.
         drain_end = time.monotonic() + 5.0
         while time.monotonic() < drain_end:
-            sample = _udp_sockets(can_port).get(reader_inode)
+            sample = udp_sockets(can_port).get(reader_inode)
             if sample is None or sample.rx_queue_bytes < DRAINED_BYTES:
                 break
             time.sleep(0.05)
         time.sleep(0.3)
-        reader = _udp_sockets(can_port).get(reader_inode)
+        reader = udp_sockets(can_port).get(reader_inode)
         if reader is not None:
             run.reader_drops = reader.drops
             if reader.drops > reader_drops:
                 run.drop_times.append(time.time() - window_start)
             if reader.rx_queue_bytes >= DRAINED_BYTES:
                 run.problems.append(f"the reader still held {reader.rx_queue_bytes} B at the end")
-        run.observer_drops = _udp_sockets(can_port).get(observer_inode, UdpSocket(0, 0, 0)).drops
+        run.observer_drops = udp_sockets(can_port).get(observer_inode, UdpSocket(0, 0, 0)).drops
         with suppress(BlockingIOError):  # what arrived after the window
             while True:
-                _data, sender_port, _stamp = _recv_stamped(observer)
+                _data, sender_port, _stamp = recv_stamped(observer)
                 if sender_port != can_port:
                     run.observed_telemetry += 1
 
@@ -684,7 +538,7 @@ def run_case(
     if run.exit_code not in (0, None):
         run.problems.append(f"the daemon exited with code {run.exit_code}")
     if run.problems:
-        run.problems.append(f"daemon log (last lines):\n{_log_tail(log_path, log_text)}")
+        run.problems.append(f"daemon log (last lines):\n{log_tail(log_path, log_text)}")
 
     period = 1.0 / OUTPUT_RATE_HZ
     if len(group1) > 1:
@@ -717,12 +571,6 @@ def _latencies(
 # -- the report -----------------------------------------------------------------------------
 
 
-def _num(value: float | int | None, spec: str, width: int) -> str:
-    if value is None or value != value:  # None or NaN
-        return f"{'-':>{width}}"
-    return f"{value:>{width}{spec}}"
-
-
 def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
     idle = runs[0]
     print()
@@ -738,11 +586,11 @@ def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
         can_in = run.can_in
         print(
             f"{run.name:<30} {esc.sent if esc else 0:>8d} "
-            f"{_num(esc.sent / esc.active_s if esc else None, '.0f', 7)} "
-            f"{run.observed_telemetry:>8d} {_num(run.counted, 'd', 8)} "
-            f"{_num(run.dropped, 'd', 7)} {_num(can_in[2] if can_in else None, 'd', 9)} "
-            f"{_num(can_in[3] if can_in else None, 'd', 9)} "
-            f"{_num(can_in[0] if can_in else None, 'd', 8)}"
+            f"{num(esc.sent / esc.active_s if esc else None, '.0f', 7)} "
+            f"{run.observed_telemetry:>8d} {num(run.counted, 'd', 8)} "
+            f"{num(run.dropped, 'd', 7)} {num(can_in[2] if can_in else None, 'd', 9)} "
+            f"{num(can_in[3] if can_in else None, 'd', 9)} "
+            f"{num(can_in[0] if can_in else None, 'd', 8)}"
         )
     print(
         "  observed: seen by the bench's own socket; counted/malformed/read errs/all read: the "
@@ -772,9 +620,9 @@ def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
             )
             shown += " ..." if len(stalls) > 8 else ""
         print(
-            f"{run.name:<30} {_num(run.reader_drops, 'd', 8)} {len(spells):>11d} "
-            f"{run.reader_peak_bytes / 1024:>8.0f} {_num(esc.skipped if esc else None, 'd', 11)} "
-            f"{_num(esc.longest_gap_s * 1e3 if esc else None, '.1f', 10)}  {shown}"
+            f"{run.name:<30} {num(run.reader_drops, 'd', 8)} {len(spells):>11d} "
+            f"{run.reader_peak_bytes / 1024:>8.0f} {num(esc.skipped if esc else None, 'd', 11)} "
+            f"{num(esc.longest_gap_s * 1e3 if esc else None, '.1f', 10)}  {shown}"
         )
     print(
         f"  rx drops: frames the kernel threw away because the reader's socket buffer was full "
@@ -801,12 +649,12 @@ def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
         p99 = percentile(err, 0.99)
         summary = run.loop_summary
         print(
-            f"{run.name:<30} {len(err) + 1 if err else 0:>7d} {_num(run.achieved_hz, '.1f', 8)} "
-            f"{_num(percentile(err, 0.5), '.0f', 6)} {_num(percentile(err, 0.9), '.0f', 6)} "
-            f"{_num(p99, '.0f', 6)} {_num(max(err) if err else None, '.0f', 7)} "
-            f"{_num(p99 / idle_p99 if idle_p99 else None, '.2f', 8)} "
-            f"{_num(summary[3] if summary else None, 'd', 8)} "
-            f"{_num(summary[5] if summary else None, 'd', 8)}"
+            f"{run.name:<30} {len(err) + 1 if err else 0:>7d} {num(run.achieved_hz, '.1f', 8)} "
+            f"{num(percentile(err, 0.5), '.0f', 6)} {num(percentile(err, 0.9), '.0f', 6)} "
+            f"{num(p99, '.0f', 6)} {num(max(err) if err else None, '.0f', 7)} "
+            f"{num(p99 / idle_p99 if idle_p99 else None, '.2f', 8)} "
+            f"{num(summary[3] if summary else None, 'd', 8)} "
+            f"{num(summary[5] if summary else None, 'd', 8)}"
         )
     print(
         "  overruns and late p99 (wake-up lateness, µs): the daemon's own count at exit, over "
@@ -827,9 +675,9 @@ def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
         lat = run.latency_ms
         print(
             f"{run.name:<30} {run.markers:>7d} {len(lat):>5d} "
-            f"{_num(percentile(lat, 0.5), '.1f', 6)} {_num(percentile(lat, 0.9), '.1f', 6)} "
-            f"{_num(percentile(lat, 0.99), '.1f', 6)} {_num(max(lat) if lat else None, '.1f', 6)} "
-            f"{_num(run.esc_status_hz_seen, '.1f', 12)}"
+            f"{num(percentile(lat, 0.5), '.1f', 6)} {num(percentile(lat, 0.9), '.1f', 6)} "
+            f"{num(percentile(lat, 0.99), '.1f', 6)} {num(max(lat) if lat else None, '.1f', 6)} "
+            f"{num(run.esc_status_hz_seen, '.1f', 12)}"
         )
     print("  ESC_STATUS/s: index-0 messages the autopilot received per second while measuring")
 
@@ -845,10 +693,10 @@ def _print_runs(runs: list[Run], args: argparse.Namespace) -> None:
         daemon = run.cpu_main_pct + run.cpu_loop_pct
         others = run.cpu_machine_pct - daemon - run.cpu_bench_pct
         print(
-            f"{run.name:<30} {_num(run.cpu_main_pct, '.1f', 6)} {_num(run.cpu_loop_pct, '.1f', 6)} "
-            f"{_num(daemon, '.1f', 6)} {_num(run.cpu_bench_pct, '.1f', 6)} "
-            f"{_num(others, '.1f', 6)} {_num(run.cpu_machine_pct, '.1f', 7)} "
-            f"{_num(run.main_waiting_pct, '.1f', 11)}"
+            f"{run.name:<30} {num(run.cpu_main_pct, '.1f', 6)} {num(run.cpu_loop_pct, '.1f', 6)} "
+            f"{num(daemon, '.1f', 6)} {num(run.cpu_bench_pct, '.1f', 6)} "
+            f"{num(others, '.1f', 6)} {num(run.cpu_machine_pct, '.1f', 7)} "
+            f"{num(run.main_waiting_pct, '.1f', 11)}"
         )
     print(
         "  main: the daemon's process (MAVLink, CAN reader, publishers); loop: its output-loop "
@@ -884,10 +732,6 @@ def _rmem_max() -> str:
         return "?"
 
 
-def _raise_interrupt(_signum: int, _frame: FrameType | None) -> None:
-    raise KeyboardInterrupt
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0, help="measured time per run")
@@ -901,7 +745,7 @@ def main() -> int:
     args = parser.parse_args()
     if not 1 <= args.escs <= 20:
         parser.error("--escs: 1..20 (CKESC 12b channels)")
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    signal.signal(signal.SIGTERM, raise_interrupt)
     print(
         f"ESC telemetry under load: {args.escs} ESCs, CKESC 12b at {OUTPUT_RATE_HZ} Hz (fixed), "
         f"SERVO_OUTPUT_RAW at {INPUT_RATE_HZ} Hz, Zenoh {'off' if args.no_zenoh else 'on'}"

@@ -291,31 +291,24 @@ class FrameScanner:
                 if missing > 0:
                     payload += _ZEROS[:missing]
             if magic == MAGIC_V2:
-                if flags:
+                link_id: int | None = None
+                signature_timestamp: int | None = None
+                if flags:  # signed: the link id and timestamp open the block after the CRC
                     at = payload_end + _CRC_LEN
-                    frame = Frame(
-                        msg_id,
-                        stream[pos + 5],
-                        stream[pos + 6],
-                        stream[pos + 4],
-                        payload,
-                        2,
-                        True,
-                        stream[pos : pos + size],
-                        stream[at],
-                        int.from_bytes(stream[at + 1 : at + 7], "little"),
-                    )
-                else:
-                    frame = Frame(
-                        msg_id,
-                        stream[pos + 5],
-                        stream[pos + 6],
-                        stream[pos + 4],
-                        payload,
-                        2,
-                        False,
-                        stream[pos : pos + size],
-                    )
+                    link_id = stream[at]
+                    signature_timestamp = int.from_bytes(stream[at + 1 : at + 7], "little")
+                frame = Frame(
+                    msg_id,
+                    stream[pos + 5],
+                    stream[pos + 6],
+                    stream[pos + 4],
+                    payload,
+                    2,
+                    bool(flags),
+                    stream[pos : pos + size],
+                    link_id,
+                    signature_timestamp,
+                )
             else:
                 frame = Frame(
                     msg_id,

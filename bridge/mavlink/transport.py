@@ -669,7 +669,31 @@ class _ReopeningStream(_StreamTransport):
         self._backoff_s = _BACKOFF_FIRST_S
 
 
-class TcpClientTransport(_ReopeningStream):
+class _SocketStream(_StreamTransport):
+    """What both TCP sides share: the stream is the socket ``_sock`` (the client's connected or
+    connecting socket; the server's accepted one), read, written and closed the same way."""
+
+    def __init__(self, endpoint: Endpoint, pending_limit_bytes: int) -> None:
+        super().__init__(endpoint, pending_limit_bytes)
+        self._sock: socket.socket | None = None
+
+    def _read_some(self) -> bytes:
+        assert self._sock is not None
+        return self._sock.recv(_READ_SIZE)
+
+    def _write_some(self, data: bytes | bytearray) -> int:
+        assert self._sock is not None
+        # MSG_NOSIGNAL: a peer that closed gives EPIPE here, never a SIGPIPE.
+        return self._sock.send(data, socket.MSG_NOSIGNAL)
+
+    def _close_stream(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        self._sock = None
+        self._fd = None
+
+
+class TcpClientTransport(_SocketStream, _ReopeningStream):
     """``tcp``: connects to HOST:PORT without blocking, and again whenever the stream is lost."""
 
     def __init__(
@@ -686,7 +710,6 @@ class TcpClientTransport(_ReopeningStream):
         """
         super().__init__(endpoint, pending_limit_bytes)
         self._address = _resolve(endpoint, socket.SOCK_STREAM)
-        self._sock: socket.socket | None = None  # connected, or connecting
         self._connect_deadline_ns = 0
         self._connecting = select.poll()  # the socket being connected, for POLLOUT
         if wait_for_link:
@@ -768,21 +791,6 @@ class TcpClientTransport(_ReopeningStream):
         self._sock = None
         self._attempt_failed(reason)
 
-    def _read_some(self) -> bytes:
-        assert self._sock is not None
-        return self._sock.recv(_READ_SIZE)
-
-    def _write_some(self, data: bytes | bytearray) -> int:
-        assert self._sock is not None
-        # MSG_NOSIGNAL: a peer that closed gives EPIPE here, never a SIGPIPE.
-        return self._sock.send(data, socket.MSG_NOSIGNAL)
-
-    def _close_stream(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
-        self._sock = None
-        self._fd = None
-
     def _close_all(self) -> None:
         if self._sock is not None and self._fd is None:  # a connect in progress
             self._connecting.unregister(self._sock)
@@ -790,7 +798,7 @@ class TcpClientTransport(_ReopeningStream):
         self._drop_pending()
 
 
-class TcpServerTransport(_StreamTransport):
+class TcpServerTransport(_SocketStream):
     """``tcpin``: listens on HOST:PORT and serves one client at a time; a new client replaces
     the current one (whose pending bytes are dropped)."""
 
@@ -811,8 +819,7 @@ class TcpServerTransport(_StreamTransport):
         except OSError as exc:
             self._listener.close()
             raise LinkError(f"cannot open MAVLink {endpoint.url!r}: {_reason(exc)}") from exc
-        self._client: socket.socket | None = None
-        self._client_name = ""
+        self._client_name = ""  # of the client on _sock
         self._incoming = select.poll()
         self._incoming.register(self._listener, select.POLLIN)
         self._closed = False
@@ -837,13 +844,13 @@ class TcpServerTransport(_StreamTransport):
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self.stats.attempts += 1
             name = f"{host}:{port}"
-            if self._client is not None:
+            if self._sock is not None:
                 log.info(
                     "MAVLink %s: client %s replaces %s", self.endpoint.url, name, self._client_name
                 )
                 self._close_stream()
                 self._drop_pending()
-            self._client, self._client_name = client, name
+            self._sock, self._client_name = client, name
             self._connected(client.fileno(), f"client {name} connected")
 
     def _on_lost(self, reason: str) -> None:
@@ -853,20 +860,6 @@ class TcpServerTransport(_StreamTransport):
             self._client_name,
             reason,
         )
-
-    def _read_some(self) -> bytes:
-        assert self._client is not None
-        return self._client.recv(_READ_SIZE)
-
-    def _write_some(self, data: bytes | bytearray) -> int:
-        assert self._client is not None
-        return self._client.send(data, socket.MSG_NOSIGNAL)
-
-    def _close_stream(self) -> None:
-        if self._client is not None:
-            self._client.close()
-        self._client = None
-        self._fd = None
 
     def _close_all(self) -> None:
         super()._close_all()

@@ -105,6 +105,7 @@ __all__ = [
     "memory_churn",
     "preset",
     "stall",
+    "stat_fields",
 ]
 
 log = logging.getLogger(__name__)
@@ -342,7 +343,7 @@ def preset(name: str, can_port: int | None = None, group: str = DEFAULT_GROUP) -
 # -- processes ----------------------------------------------------------------------------------
 
 
-def _stat_fields(pid: int) -> list[str] | None:
+def stat_fields(pid: int) -> list[str] | None:
     """/proc/<pid>/stat after the command name (field 3, the state, first), or None if gone."""
     try:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -355,7 +356,7 @@ def group_pids(pgid: int) -> list[int]:
     found = []
     for entry in os.scandir("/proc"):
         if entry.name.isdigit():
-            fields = _stat_fields(int(entry.name))
+            fields = stat_fields(int(entry.name))
             if fields is not None and int(fields[2]) == pgid and fields[0] != "Z":
                 found.append(int(entry.name))
     return found
@@ -365,7 +366,7 @@ def _cpu_seconds(pids: Sequence[int]) -> float:
     """User + system time of ``pids`` and of the children each has reaped."""
     total = 0
     for pid in pids:
-        fields = _stat_fields(pid)
+        fields = stat_fields(pid)
         if fields is not None:
             total += sum(int(x) for x in fields[11:15])  # utime stime cutime cstime
     return total / _CLOCK_TICKS
