@@ -539,6 +539,16 @@ class Supervisor:
                 "invalid": stats["input_invalid"],
                 "mixer_errors": stats["mixer_errors"],
                 "age_ms": round(stats["input_age_us"] / 1000, 1),
+                "out_of_order": stats["input_out_of_order"],
+                "unsigned": stats["input_unsigned"],
+            },
+            # The autopilot link as the loop, its owner, keeps it: what the main process was
+            # too slow to take, and what could not be written to the autopilot.
+            "link": {
+                "relay_dropped": stats["relay_dropped"],
+                "sent": stats["link_sent"],
+                "send_dropped": stats["link_dropped"],
+                "reconnects": stats["link_reconnects"],
             },
             "escs_online": sum(
                 1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online

@@ -48,7 +48,8 @@ def multicast_bus(port: int) -> can.BusABC:
 
 
 class Observer:
-    """Records every frame on a cross-process bus, in a thread, with receive times."""
+    """Records every frame on a cross-process bus, in a thread, with the kernel's receive
+    times (monotonic)."""
 
     def __init__(self, port: int) -> None:
         self.bus = multicast_bus(port)
@@ -62,8 +63,13 @@ class Observer:
         while not self._stop.is_set():
             msg = self.bus.recv(0.05)
             if msg is not None:
+                # The kernel's receive time (udp_multicast reads SO_TIMESTAMPNS) on the
+                # monotonic clock: when the bridge sent the frame, however late this thread
+                # got to it on a loaded machine.
+                now = time.monotonic()
+                stamp = msg.timestamp - (time.time() - now) if msg.timestamp else now
                 with self._lock:
-                    self.frames.append((time.monotonic(), msg))
+                    self.frames.append((min(stamp, now), msg))
 
     def since(self, t: float) -> list[can.Message]:
         with self._lock:

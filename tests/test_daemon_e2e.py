@@ -182,8 +182,9 @@ def test_sigterm_sends_safe_values_then_exits_zero(
     time.sleep(0.2)  # anything still in flight
     after = [(ts, t) for ts, m in observer.frames if ts >= sent_at and (t := ckesc_throttles(m))]
     first_safe = next(i for i, (_, t) in enumerate(after) if t == (0, 0, 0, 0))
-    # Safe values follow the signal within a few ticks (generous for a loaded test machine)...
-    assert after[first_safe][0] - sent_at < 0.1
+    # Safe values follow the signal as soon as the main process (not real-time) runs its
+    # handler: a few ticks, at most a few hundred ms on a loaded machine...
+    assert after[first_safe][0] - sent_at < 0.3
     safe = [t for _, t in after[first_safe:]]
     # ...and only safe values follow, for shutdown_flush_ms 200 at 400 Hz: about 80 frames.
     assert all(t == (0, 0, 0, 0) for t in safe)
