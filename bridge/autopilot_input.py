@@ -88,12 +88,10 @@ class AutopilotInput:
         self._decoder = decoder_for(
             mavlink.source, mavlink.autopilot_system_id, mavlink.component_id
         )
-        self._output_ids = self._decoder.msg_ids
         # The main process gets every frame but the autopilot's outputs, which the loop acts on
         # and counts; all of them when it records the link.
         self._relay_outputs = setup.relay_outputs
-        self._clock = AutopilotClock(time_bits=64)
-        self._clock_bits = 0  # the width of the clock built, set on the first input
+        self._clock = AutopilotClock(time_bits=self._decoder.time_bits)
         self._scanner = FrameScanner.for_dialect(load_dialect())
         self._mixer = Mixer(setup.mixer, setup.valid_range, AXIS_VALID_RANGE)
         self._axes = (
@@ -112,6 +110,8 @@ class AutopilotInput:
         self._i_invalid, self._i_mixer = slot("input_invalid"), slot("mixer_errors")
         self._i_relay_dropped, self._i_age = slot("relay_dropped"), slot("input_age_us")
         self._i_sent, self._i_dropped = slot("link_sent"), slot("link_dropped")
+        self._i_bad_crc, self._i_junk = slot("input_bad_crc"), slot("input_junk_bytes")
+        self._i_reconnects = slot("link_reconnects")
 
     def open(self) -> None:
         """Open the autopilot's transport.
@@ -136,7 +136,7 @@ class AutopilotInput:
         transport = self._transport
         if transport is not None:
             transport.service(now_ns)
-            self._counters[self._stats.slot("link_reconnects")] = transport.stats.reconnects
+            self._counters[self._i_reconnects] = transport.stats.reconnects
 
     def on_readable(self, now_ns: int) -> bool:
         """Read what is waiting; True when a new input was acted on."""
@@ -152,19 +152,15 @@ class AutopilotInput:
             relayed: list[bytes] = []
             for frame in self._scanner.feed(data):
                 fresh |= self._on_frame(frame, received_ns, now_ns)
-                if self._relay_outputs or not (
-                    frame.msg_id in self._output_ids
-                    and frame.sys_id == self._autopilot[0]
-                    and frame.comp_id == self._autopilot[1]
-                ):
+                if self._relay_outputs or not self._is_autopilot_output(frame):
                     relayed.append(frame.raw)
             relay = self._relay
-            if relayed and relay is not None and not relay.forward(received_ns, b"".join(relayed)):
+            if relayed and relay is not None and not relay.forward(b"".join(relayed)):
                 self._counters[self._i_relay_dropped] += 1
         scanner, counters = self._scanner, self._counters
         counters[self._i_frames] = scanner.frames
-        counters[self._stats.slot("input_bad_crc")] = scanner.bad_crc
-        counters[self._stats.slot("input_junk_bytes")] = scanner.junk_bytes
+        counters[self._i_bad_crc] = scanner.bad_crc
+        counters[self._i_junk] = scanner.junk_bytes
         return fresh
 
     def on_relay(self) -> None:
@@ -191,6 +187,16 @@ class AutopilotInput:
             self._transport.close()
             self._transport = None
 
+    def _is_autopilot_output(self, frame: Frame) -> bool:
+        return (
+            frame.msg_id in self._decoder.msg_ids
+            and (
+                frame.sys_id,
+                frame.comp_id,
+            )
+            == self._autopilot
+        )
+
     def _on_frame(self, frame: Frame, received_ns: int, now_ns: int) -> bool:
         msg_id = frame.msg_id
         is_heartbeat = msg_id == HEARTBEAT_ID
@@ -215,9 +221,6 @@ class AutopilotInput:
             return False
         if decoded.armed is not None:
             self._set_armed(decoded.armed, received_ns)
-        if decoded.time_bits != self._clock_bits:
-            self._clock = AutopilotClock(time_bits=decoded.time_bits)
-            self._clock_bits = decoded.time_bits
         produced_ns = self._clock.produced_ns(decoded.time_us, received_ns)
         if inputs.have_input and produced_ns < inputs.input_produced_ns:
             counters[self._i_order] += 1  # overtaken on the way: the newer one stands

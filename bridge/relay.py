@@ -3,12 +3,13 @@
 The control loop reads the autopilot's bytes itself (the motor outputs and arming state must
 not wait on anything), and the main process still needs the rest of the traffic: commands from
 a ground station routed through the autopilot, HEARTBEAT and stream bookkeeping, the
-recording. So the loop relays every chunk it reads, stamped with its receive time, to the main
-process, and writes to the autopilot link whatever frames the main process hands it (its
-HEARTBEAT, STATUSTEXT, ESC telemetry, command answers, stream requests).
+recording. So the loop relays the whole frames it finds (all but the autopilot's outputs,
+unless the link is recorded) to the main process, and writes to the autopilot link whatever
+frames the main process hands it (its HEARTBEAT, STATUSTEXT, ESC telemetry, command answers,
+stream requests).
 
 A relay is a pair of connected ``AF_UNIX``/``SOCK_SEQPACKET`` sockets: message boundaries are
-kept (one chunk or frame per message), the kernel buffers them, and the loop's end is
+kept (one read's frames, or one frame, per message), the kernel buffers them, and the loop's end is
 non-blocking: when the main process falls behind, the loop drops what it cannot hand over and
 counts it, and never waits. A closed peer reads as end of file, which is how the loop learns at
 once that the main process died (and the main process that the loop did).
@@ -17,13 +18,11 @@ once that the main process died (and the main process that the loop did).
 from __future__ import annotations
 
 import socket
-import struct
 from dataclasses import dataclass
 
 from bridge.errors import LinkError
 
-_STAMP = struct.Struct("<q")  # receive time, monotonic ns, before each relayed chunk
-_MAX_MESSAGE = 1 << 17  # a UDP datagram (64 KiB) and its stamp fit with room to spare
+_MAX_MESSAGE = 1 << 17  # a UDP datagram's frames (64 KiB at most) fit with room to spare
 # The main side waits at most this long to hand a frame to the loop, which drains its end on
 # every wake-up; longer means the loop is gone or stopped, and MAVLink is lossy anyway.
 _MAIN_SEND_TIMEOUT_S = 0.05
@@ -42,11 +41,11 @@ class LoopEnd:
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def forward(self, received_ns: int, data: bytes) -> bool:
-        """Hand a chunk read from the autopilot to the main process; False when dropped (the
+    def forward(self, frames: bytes) -> bool:
+        """Hand frames read from the autopilot to the main process; False when dropped (the
         main process is behind or gone)."""
         try:
-            self.sock.send(_STAMP.pack(received_ns) + data)
+            self.sock.send(frames)
         except (BlockingIOError, ConnectionError, OSError):
             return False
         return True
@@ -81,13 +80,9 @@ class MainConnection:
         self._sock = sock
         sock.settimeout(_MAIN_SEND_TIMEOUT_S)
         self.fd = sock.fileno()
-        self.received_ns = 0
-        """The loop's receive time of the chunk :meth:`recv` returned last."""
-        self.dropped = 0
-        """Frames not handed to the loop in time (it is stalled or gone)."""
 
     def recv(self, _size: int = 0) -> bytes:
-        """The next relayed chunk; b'' when none came in time.
+        """The next relayed frames; b'' when none came in time.
 
         Raises:
             EOFError: the loop closed its end (it stopped or died): the link has ended.
@@ -100,18 +95,15 @@ class MainConnection:
             raise EOFError("the control loop closed the autopilot relay") from exc
         if not message:
             raise EOFError("the control loop closed the autopilot relay")
-        if len(message) < _STAMP.size:
-            return b""
-        (self.received_ns,) = _STAMP.unpack_from(message)
-        return message[_STAMP.size :]
+        return message
 
     def write(self, frame: bytes) -> int:
         """Hand ``frame`` to the loop for the autopilot link; returns its length, or -1 when it
-        was dropped (as pymavlink's serial write reports a failure)."""
+        was dropped, counted by the link as a send failure (as pymavlink's serial write
+        reports one)."""
         try:
             self._sock.send(frame)
         except (TimeoutError, OSError):
-            self.dropped += 1
             return -1
         return len(frame)
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 from collections.abc import Callable
 from types import FrameType
 from typing import Any
@@ -31,7 +30,6 @@ class StopSignals:
 
     def __init__(self) -> None:
         self.received: signal.Signals | None = None
-        self._event = threading.Event()
         self._callbacks: list[Callable[[signal.Signals], None]] = []
         self._previous: dict[signal.Signals, Any] = {}
 
@@ -46,7 +44,6 @@ class StopSignals:
         sig = signal.Signals(signum)
         if self.received is None:
             self.received = sig
-        self._event.set()
         for callback in tuple(self._callbacks):
             callback(sig)
 
@@ -55,10 +52,6 @@ class StopSignals:
         self._callbacks.append(callback)
         if self.received is not None:
             callback(self.received)
-
-    @property
-    def requested(self) -> bool:
-        return self._event.is_set()
 
     def release(self) -> None:
         """Give the signals their previous handlers back; a signal caught meanwhile is raised

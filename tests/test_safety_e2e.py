@@ -51,49 +51,46 @@ def rt_autopilot(mavlink_port: int) -> Iterator[Callable[[list[int]], RealtimeAu
 # -- signals and deaths -----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGTERM])
-def test_a_stop_signal_to_the_whole_group_flushes_safe_values_and_exits_zero(
+# Deadlines from the signal to the first safe frame. The whole group (a closing terminal,
+# Ctrl-C, systemd) reaches the real-time loop itself: the next tick. The main process alone
+# asks the loop the moment it runs its handler (it used to wait for its 100 ms wake-up); it is
+# not real-time, so a loaded machine may hold the handler off: a bound that holds at load 8.
+SIGNAL_DEADLINE_S = {"group": 0.1, "main": 0.3}
+
+
+@pytest.mark.parametrize(
+    ("target", "sig"),
+    [
+        ("group", signal.SIGHUP),
+        ("group", signal.SIGQUIT),
+        ("group", signal.SIGTERM),
+        ("main", signal.SIGHUP),
+        ("main", signal.SIGQUIT),
+    ],
+)
+def test_a_stop_signal_flushes_safe_values_and_exits_zero(
     start_daemon: Callable[..., Daemon],
     autopilot: Autopilot,
     observer: Observer,
+    target: str,
     sig: signal.Signals,
 ) -> None:
-    """A closing terminal sends SIGHUP to every process of the group, the loop's included."""
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
     expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
     sent_at = time.monotonic()
-    os.killpg(daemon.proc.pid, sig)
+    if target == "group":
+        os.killpg(daemon.proc.pid, sig)
+    else:
+        daemon.proc.send_signal(sig)
     assert wait_exit(daemon) == 0, daemon.output
     time.sleep(0.1)
     after = throttles_since(observer, sent_at)
     first_safe = next(i for i, (_, t) in enumerate(after) if t == SAFE)
-    assert after[first_safe][0] - sent_at < 0.1
+    assert after[first_safe][0] - sent_at < SIGNAL_DEADLINE_S[target]
     flush = [t for _, t in after[first_safe:]]
     assert all(t == SAFE for t in flush)
     assert len(flush) >= 40  # 200 ms at 400 Hz: about 80
-
-
-@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT])
-def test_a_stop_signal_to_the_main_process_alone_ends_live_throttle_within_a_tick(
-    start_daemon: Callable[..., Daemon],
-    autopilot: Autopilot,
-    observer: Observer,
-    sig: signal.Signals,
-) -> None:
-    daemon = start_daemon()
-    arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
-    sent_at = time.monotonic()
-    daemon.proc.send_signal(sig)
-    assert wait_exit(daemon) == 0, daemon.output
-    after = throttles_since(observer, sent_at)
-    first_safe = next(i for i, (_, t) in enumerate(after) if t == SAFE)
-    # The loop is asked to flush the moment the main process runs its handler (it used to
-    # wait for its 100 ms wake-up); that process is not real-time, so a loaded machine may
-    # hold the handler off: a bound that holds at load 8.
-    assert after[first_safe][0] - sent_at < 0.3
-    assert all(t == SAFE for _, t in after[first_safe:])
     assert f"{sig.name}: stopping" in daemon.output
 
 

@@ -116,8 +116,6 @@ class ActuatorInput:
     time_us: int | None
     """The message's own ``time_usec`` (the autopilot's clock, µs since its boot); None when
     the message carries 0."""
-    time_bits: int
-    """Width of ``time_usec``: 32 for SERVO_OUTPUT_RAW (wraps every 71.6 min), else 64."""
     armed: bool | None = None
     """HIL_ACTUATOR_CONTROLS: its ``mode`` has MAV_MODE_FLAG_SAFETY_ARMED; None for others."""
 
@@ -146,6 +144,8 @@ class ActuatorDecoder(ABC):
     """The message's name, e.g. ``"SERVO_OUTPUT_RAW"`` (the first, when there are two)."""
     msg_ids: frozenset[int]
     """The message ids :meth:`decode` reads; it returns None for any other."""
+    time_bits = 64
+    """Width of the messages' ``time_usec``: 32 for SERVO_OUTPUT_RAW (wraps every 71.6 min)."""
 
     @abstractmethod
     def decode(self, frame: Frame) -> ActuatorInput | None:
@@ -168,6 +168,7 @@ class ServoOutputRawDecoder(ActuatorDecoder):
 
     name = "SERVO_OUTPUT_RAW"
     msg_ids = frozenset((SERVO_OUTPUT_RAW_ID,))
+    time_bits = 32
 
     def __init__(self) -> None:
         self._channels: list[float] = [_NAN] * CHANNEL_COUNT
@@ -203,7 +204,7 @@ class ServoOutputRawDecoder(ActuatorDecoder):
             channels[at] = float(raw) if raw else _NAN
             at += 1
         time_us: int = fields[0]
-        return ActuatorInput(channels + _ABSENT_AXES, time_us or None, 32)
+        return ActuatorInput(channels + _ABSENT_AXES, time_us or None)
 
 
 class ActuatorOutputStatusDecoder(ActuatorDecoder):
@@ -227,7 +228,7 @@ class ActuatorOutputStatusDecoder(ActuatorDecoder):
             active >>= 1
             slot += 1
         time_us: int = fields[0]
-        return ActuatorInput(values, time_us or None, 64)
+        return ActuatorInput(values, time_us or None)
 
 
 class HilActuatorControlsDecoder(ActuatorDecoder):
@@ -244,7 +245,7 @@ class HilActuatorControlsDecoder(ActuatorDecoder):
         values += _ABSENT_AFTER_HIL
         time_us: int = fields[0]
         armed = bool(fields[_HIL_MODE_AT] & MAV_MODE_FLAG_SAFETY_ARMED)
-        return ActuatorInput(values, time_us or None, 64, armed)
+        return ActuatorInput(values, time_us or None, armed)
 
 
 class ActuatorControlTargetDecoder(ActuatorDecoder):
@@ -281,7 +282,7 @@ class ActuatorControlTargetDecoder(ActuatorDecoder):
             if -_INF < value < _INF:  # False for inf and NaN
                 values[_AXIS_AT + axis] = value
         time_us: int = fields[0]
-        return ActuatorInput(values, time_us or None, 64)
+        return ActuatorInput(values, time_us or None)
 
 
 _SOURCES: Final = get_args(MavlinkSource)
