@@ -1,6 +1,7 @@
 """The output loop under load, against a plain pymavlink + python-can loop.
 
-Run: ``python bench/loop.py [--seconds 30] [--warmup 2]``
+Run: ``python bench/loop.py [--seconds 30] [--warmup 2] [--modes fixed immediate baseline]
+[--bridge-source DIR]``
 
 For each case (rate 400/1000 Hz x 8/20 ESCs) the daemon runs through its CLI (`esc-bridge run`,
 loop in its own process, CKESC 12b on a udp_multicast bus on this machine) in fixed-rate and in
@@ -14,7 +15,12 @@ receive path runs inside the sender's send call, so this is the send time to wit
 - rate: group-1 frames per second against the nominal rate;
 - period error: |interval between consecutive group-1 frames - period|, µs;
 - latency: from the autopilot's send of a SERVO_OUTPUT_RAW to the first frame carrying it;
-- CPU: user + system time of the daemon's processes (main and loop) over the run, % of a core.
+- CPU: user + system time of the daemon's processes (main and loop) over the run, % of a core,
+  and of the loop process alone.
+
+``--bridge-source`` runs the daemon from another checkout (``git worktree add /tmp/before
+<commit>``) with this bench, so a change is compared with the code before it on the same
+machine in the same hour: alternate the two, a few runs each, and compare medians.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import multiprocessing
 import os
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -71,11 +78,13 @@ def autopilot_worker(port: int, n_channels: int, seconds: float, out: Any) -> No
         pwm = [1000 + (k % 1000)] + [1500] * 31  # throttle on channel 1 = 2 x (k mod 1000)
         ext = {f"servo{i}_raw": pwm[i - 1] for i in range(9, 17)}
         time_us = time.monotonic_ns() // 1000 & 0xFFFFFFFF  # the autopilot's clock, as ArduPilot
+        # Stamped before the send: a real-time bridge can run, and send the frame, between this
+        # process's sendto and its next line.
+        sends.append((2 * (k % 1000), time.time()))
         mav.servo_output_raw_send(time_us, 0, *pwm[:8], **ext)
         if n_channels > 16:
             ext = {f"servo{i}_raw": pwm[i + 15] for i in range(9, 17)}
             mav.servo_output_raw_send(time_us, 1, *pwm[16:24], **ext)
-        sends.append((2 * (k % 1000), time.time()))
         k += 1
         _sleep_until(start + k * period)
         del now
@@ -143,6 +152,7 @@ class Result:
     period_err_us: list[float]
     latency_us: list[float]
     cpu_pct: float
+    loop_cpu_pct: float  # the daemon's loop process alone (its children); the baseline: 0
     seen_pct: float  # inputs that reached the bus: a run that ignored its input is no result
 
 
@@ -162,8 +172,23 @@ def _daemon_config(path: Path, rate_hz: int, n_escs: int, latency: str) -> Path:
     return config
 
 
+def _daemon_command(source: Path | None) -> tuple[list[str], dict[str, str] | None]:
+    """How to start ``esc-bridge``: installed, or from the source tree ``source`` (another
+    commit's checkout, for a before/after comparison on the same machine and hour)."""
+    if source is None:
+        return [], None
+    main = "import sys; from bridge.cli import main; sys.exit(main())"
+    return [sys.executable, "-c", main], {**os.environ, "PYTHONPATH": str(source)}
+
+
 def run_case(
-    name: str, rate_hz: int, n_escs: int, seconds: float, warmup: float, latency: str | None
+    name: str,
+    rate_hz: int,
+    n_escs: int,
+    seconds: float,
+    warmup: float,
+    latency: str | None,
+    source: Path | None = None,
 ) -> Result | str:
     """The measurements of one case, or why the daemon refused to run it."""
     ctx = multiprocessing.get_context("spawn")
@@ -179,9 +204,11 @@ def run_case(
             pid: int = target.pid or 0
         else:
             config = _daemon_config(Path(tmp), rate_hz, n_escs, latency)
-            proc = subprocess.Popen(
-                [*bridge_command(mavlink_port, can_port, "warning"), "--config", str(config)],
-            )
+            command = [*bridge_command(mavlink_port, can_port, "warning"), "--config", str(config)]
+            prefix, env = _daemon_command(source)
+            if prefix:
+                command[:1] = prefix
+            proc = subprocess.Popen(command, env=env)
             pid = proc.pid
         time.sleep(1.5)  # the daemon spawns its loop process
         if latency is not None and proc.poll() is not None:
@@ -196,12 +223,13 @@ def run_case(
         esc.start()
         frames: list[tuple[float, int]] = []  # kernel time, channel-1 throttle of group-1 frames
         start = time.monotonic()
-        cpu_start = 0.0
-        pids = [pid]
+        cpu_start = loop_cpu_start = 0.0
+        pids = kids = [pid]
         while (elapsed := time.monotonic() - start) < seconds + warmup:
             if cpu_start == 0.0 and elapsed >= warmup:
-                pids = [pid, *children(pid)]
-                cpu_start = cpu_seconds(pids)
+                kids = children(pid) if latency is not None else []
+                pids = [pid, *kids]
+                cpu_start, loop_cpu_start = cpu_seconds(pids), cpu_seconds(kids)
                 cpu_t0 = time.monotonic()
             msg = observer.recv(0.1)
             # Every 12b group has the same CAN ID; the group number is byte 6.
@@ -210,7 +238,9 @@ def run_case(
             if elapsed < warmup:
                 continue
             frames.append((msg.timestamp, (msg.data[0] | (msg.data[1] & 0x0F) << 8)))
-        cpu_pct = 100 * (cpu_seconds(pids) - cpu_start) / (time.monotonic() - cpu_t0)
+        cpu_s = time.monotonic() - cpu_t0
+        cpu_pct = 100 * (cpu_seconds(pids) - cpu_start) / cpu_s
+        loop_cpu_pct = 100 * (cpu_seconds(kids) - loop_cpu_start) / cpu_s
         sends: list[tuple[int, float]] = sends_q.get(timeout=30)
         pilot.join()
         esc.join()
@@ -228,7 +258,7 @@ def run_case(
     measured_sends = [s for s in sends if frames[0][0] <= s[1] <= frames[-1][0] - 0.01]
     latencies = _latencies(measured_sends, frames)
     seen_pct = 100 * len(latencies) / max(1, len(measured_sends))
-    return Result(name, rate_hz, achieved, errors, latencies, cpu_pct, seen_pct)
+    return Result(name, rate_hz, achieved, errors, latencies, cpu_pct, loop_cpu_pct, seen_pct)
 
 
 def _latencies(sends: list[tuple[int, float]], frames: list[tuple[float, int]]) -> list[float]:
@@ -245,32 +275,52 @@ def _latencies(sends: list[tuple[int, float]], frames: list[tuple[float, int]]) 
     return out
 
 
+MODES = {"fixed": "fixed", "immediate": "immediate", "baseline": None}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="measured time per case")
     parser.add_argument("--warmup", type=float, default=2.0, help="time discarded at the start")
     parser.add_argument("--rates", type=int, nargs="+", default=[400, 1000], help="loop rates, Hz")
     parser.add_argument("--escs", type=int, nargs="+", default=[8, 20], help="ESC counts")
+    parser.add_argument(
+        "--modes", nargs="+", choices=list(MODES), default=list(MODES), help="what to run"
+    )
+    parser.add_argument(
+        "--bridge-source",
+        type=Path,
+        metavar="DIR",
+        help="run the daemon from this source tree (e.g. a `git worktree` of another commit) "
+        "instead of the installed package",
+    )
     args = parser.parse_args()
     header = (
         f"{'case':<34} {'rate Hz':>8} {'dev %':>7} {'err p50':>8} {'err p99':>8} {'err max':>8} "
-        f"{'lat p50':>8} {'lat p99':>8} {'CPU %':>6} {'seen %':>6}"
+        f"{'lat p50':>8} {'lat p99':>8} {'CPU %':>6} {'loop %':>6} {'seen %':>6}"
     )
     print(f"output loop, {args.seconds:.0f} s per case, input 400 Hz, CKESC telemetry arriving")
-    print("period error and latency in µs; CPU in % of one core (daemon: main + loop process)")
+    print(
+        "period error and latency in µs; CPU in % of one core (daemon: main + loop process; "
+        "loop: the loop process alone)"
+    )
+    if args.bridge_source:
+        print(f"daemon from {args.bridge_source}")
     print(header)
     print("-" * len(header))
     for rate_hz in args.rates:
         for n_escs in args.escs:
-            rows: list[Result | None] = []
-            for latency in ("fixed", "immediate", None):
+            rows: dict[str, Result] = {}
+            for mode in args.modes:
+                latency = MODES[mode]
                 label = f"{'daemon ' + latency if latency else 'baseline sleep(period)'}"
-                result = run_case(label, rate_hz, n_escs, args.seconds, args.warmup, latency)
+                result = run_case(
+                    label, rate_hz, n_escs, args.seconds, args.warmup, latency, args.bridge_source
+                )
                 if isinstance(result, str):
                     print(f"{f'{rate_hz} Hz x{n_escs} {label}':<34} {result}", flush=True)
-                    rows.append(None)
                     continue
-                rows.append(result)
+                rows[mode] = result
                 err = result.period_err_us
                 print(
                     f"{f'{rate_hz} Hz x{n_escs} {label}':<34} {result.achieved_hz:>8.1f} "
@@ -279,10 +329,10 @@ def main() -> int:
                     f"{max(err) if err else float('nan'):>8.0f} "
                     f"{statistics.median(result.latency_us):>8.0f} "
                     f"{percentile(result.latency_us, 0.99):>8.0f} {result.cpu_pct:>6.1f} "
-                    f"{result.seen_pct:>6.1f}",
+                    f"{result.loop_cpu_pct:>6.1f} {result.seen_pct:>6.1f}",
                     flush=True,
                 )
-            fixed, immediate, base = rows
+            fixed, immediate, base = (rows.get(mode) for mode in MODES)
             if fixed is None or base is None:
                 continue
 
