@@ -29,7 +29,12 @@ from dataclasses import dataclass
 from bridge.config import BridgeConfig
 from bridge.mailbox import InputSnapshot, LoopStats
 from bridge.mavlink import load_dialect
-from bridge.mavlink.actuators import HEARTBEAT_ID, decoder_for, heartbeat_armed
+from bridge.mavlink.actuators import (
+    HEARTBEAT_ID,
+    decoder_for,
+    heartbeat_armed,
+    heartbeat_autopilot,
+)
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
 from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
@@ -214,6 +219,7 @@ class AutopilotInput:
             armed = heartbeat_armed(frame)
             if armed is not None:
                 counters[self._i_heartbeats] += 1
+                self._decoder.identify(heartbeat_autopilot(frame) or 0)
                 self._set_armed(armed, received_ns)
             return False
         decoded = self._decoder.decode(frame)

@@ -854,6 +854,7 @@ class MavlinkLink:
             return
         if not is_output:
             self.stats.last_heartbeat_ns = now
+            self._decoder.identify(msg.autopilot)
             if self._sink is not None:
                 self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
             return

@@ -21,7 +21,9 @@ semantics are those of :class:`bridge.mavlink_in.MavlinkLink`'s decoders:
                                          round of the other port is absent, not held (see
                                          :class:`ServoOutputRawDecoder`). uint32 time_usec.
  ``actuator_output_status``              ACTUATOR_OUTPUT_STATUS actuator[i] -> ch(i+1) where
-                                         bit i of ``active`` is set
+                                         bit i of ``active`` is set; from PX4 (its HEARTBEAT
+                                         says MAV_AUTOPILOT_PX4) ``active`` is the number of
+                                         outputs: ch1..ch(active)
  ``hil_actuator_controls``               HIL_ACTUATOR_CONTROLS controls[0..15] -> ch1..16;
                                          ``mode`` & MAV_MODE_FLAG_SAFETY_ARMED -> ``armed``
  ``actuator_control_target``             ACTUATOR_CONTROL_TARGET group 0 and
@@ -67,6 +69,7 @@ __all__ = [
     "ServoOutputRawDecoder",
     "decoder_for",
     "heartbeat_armed",
+    "heartbeat_autopilot",
 ]
 
 INPUT_VECTOR_LEN: Final = len(INPUT_NAMES)
@@ -79,9 +82,11 @@ SET_ACTUATOR_CONTROL_TARGET_ID: Final = 139
 ACTUATOR_CONTROL_TARGET_ID: Final = 140
 ACTUATOR_OUTPUT_STATUS_ID: Final = 375
 MAV_MODE_FLAG_SAFETY_ARMED: Final = 128
+MAV_AUTOPILOT_PX4: Final = 12
 
 # Wire layouts. HEARTBEAT: custom_mode u32, type, autopilot, base_mode, system_status,
 # mavlink_version (u8 each): base_mode is byte 6.
+_HEARTBEAT_AUTOPILOT_AT: Final = 5
 _HEARTBEAT_BASE_MODE_AT: Final = 6
 # SERVO_OUTPUT_RAW: time_usec u32, servo1..8_raw u16, port u8; extensions servo9..16_raw u16.
 _SERVO: Final = struct.Struct("<I8HB8H")
@@ -137,6 +142,15 @@ def heartbeat_armed(frame: Frame) -> bool | None:
     return bool(payload[_HEARTBEAT_BASE_MODE_AT] & MAV_MODE_FLAG_SAFETY_ARMED)
 
 
+def heartbeat_autopilot(frame: Frame) -> int | None:
+    """For a HEARTBEAT: its ``autopilot`` (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4). None for any
+    other message."""
+    if frame.msg_id != HEARTBEAT_ID:
+        return None
+    payload = frame.payload
+    return payload[_HEARTBEAT_AUTOPILOT_AT] if len(payload) > _HEARTBEAT_AUTOPILOT_AT else 0
+
+
 class ActuatorDecoder(ABC):
     """Decodes one ``[mavlink] source``'s messages; built by :func:`decoder_for`."""
 
@@ -155,6 +169,11 @@ class ActuatorDecoder(ABC):
     def reset(self) -> None:
         """Forget what earlier messages left (the link was reopened)."""
         return  # most decoders keep nothing from one message to the next
+
+    def identify(self, autopilot: int) -> None:
+        """The sender's flight stack (MAV_AUTOPILOT, from its HEARTBEAT), for a message that
+        stacks fill differently."""
+        return  # most messages mean the same from every stack
 
 
 class ServoOutputRawDecoder(ActuatorDecoder):
@@ -208,16 +227,31 @@ class ServoOutputRawDecoder(ActuatorDecoder):
 
 
 class ActuatorOutputStatusDecoder(ActuatorDecoder):
-    """ACTUATOR_OUTPUT_STATUS: actuator[i] -> ch(i+1) where bit i of ``active`` is set."""
+    """ACTUATOR_OUTPUT_STATUS: actuator[i] -> ch(i+1) where bit i of ``active`` is set.
+
+    The message definition makes ``active`` a bitmask, but PX4, the stack that sends this
+    message, puts the number of outputs there (``active = noutputs`` in its
+    ACTUATOR_OUTPUT_STATUS stream: 16 for channels 1..16). Read as bits, that count would drop
+    motors (16 is bit 4 alone: channel 5 only), so once the sender's HEARTBEAT names PX4 the
+    count is what it means.
+    """
 
     name = "ACTUATOR_OUTPUT_STATUS"
     msg_ids = frozenset((ACTUATOR_OUTPUT_STATUS_ID,))
+
+    def __init__(self) -> None:
+        self._active_is_count = False
+
+    def identify(self, autopilot: int) -> None:
+        self._active_is_count = autopilot == MAV_AUTOPILOT_PX4
 
     def decode(self, frame: Frame) -> ActuatorInput | None:
         if frame.msg_id != ACTUATOR_OUTPUT_STATUS_ID:
             return None
         fields = _OUTPUT_STATUS.unpack_from(_full(frame.payload, _OUTPUT_STATUS.size))
         active: int = fields[1]
+        if self._active_is_count:
+            active = (1 << min(active, CHANNEL_COUNT)) - 1
         values = [_NAN] * INPUT_VECTOR_LEN
         slot = 0
         while active:

@@ -250,6 +250,43 @@ def test_actuator_output_status_uses_the_active_mask() -> None:
     assert result.time_us is None  # 0: the message carried no time
 
 
+@pytest.mark.parametrize(
+    ("autopilot", "active", "expected"),
+    [
+        # PX4 (its ACTUATOR_OUTPUT_STATUS stream sets active = noutputs): a count.
+        ("MAV_AUTOPILOT_PX4", 16, {f"ch{i}": 1000.0 + i for i in range(1, 17)}),
+        ("MAV_AUTOPILOT_PX4", 4, {f"ch{i}": 1000.0 + i for i in range(1, 5)}),
+        ("MAV_AUTOPILOT_PX4", 0, {}),
+        ("MAV_AUTOPILOT_PX4", 40, {f"ch{i}": 1000.0 + i for i in range(1, 33)}),
+        # Any other stack, or none heard yet: bits, as the message definition says.
+        ("MAV_AUTOPILOT_ARDUPILOTMEGA", 16, {"ch5": 1005.0}),
+        (None, 16, {"ch5": 1005.0}),
+    ],
+)
+def test_actuator_output_status_active_is_a_count_from_px4(
+    autopilot: str | None, active: int, expected: dict[str, float]
+) -> None:
+    decoder = decoder_for("actuator_output_status", *OURS)
+    if autopilot is not None:
+        heartbeat = frame_of(
+            DIALECT.MAVLink_heartbeat_message(2, getattr(DIALECT, autopilot), 0, 0, 4, 3)
+        )
+        decoder.identify(actuators.heartbeat_autopilot(heartbeat) or 0)
+    actuator = [1000.0 + i for i in range(1, 33)]
+    result = decoder.decode(
+        frame_of(DIALECT.MAVLink_actuator_output_status_message(9, active, actuator))
+    )
+    assert result is not None
+    assert_vector(result.values, expected)
+
+
+def test_heartbeat_autopilot_reads_the_stack() -> None:
+    px4 = DIALECT.MAVLink_heartbeat_message(2, DIALECT.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
+    assert actuators.heartbeat_autopilot(frame_of(px4)) == 12
+    servo = DIALECT.MAVLink_servo_output_raw_message(1, 0, *[1000] * 8)
+    assert actuators.heartbeat_autopilot(frame_of(servo)) is None
+
+
 def test_hil_actuator_controls_carry_the_arming_state() -> None:
     controls = [0.5, -0.25, 0.125, 1.0] + [0.0] * 12
     armed = decode(
