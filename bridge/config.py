@@ -238,6 +238,12 @@ class MavlinkConfig:
     stream_rate_hz: float = key(
         200.0, _float_range(0, 1000), "output stream rate asked of the autopilot; 0 = do not ask"
     )
+    autopilot_heartbeat_hz: float = key(
+        20.0,
+        _float_range(0, 100),
+        "HEARTBEAT rate asked of the autopilot, so an arming change is heard within 1/rate "
+        "instead of up to a second; 0 = do not ask",
+    )
     signing_key: str | None = key(
         None,
         _optional(_check(_is_hex32, "64 hex digits (a 32-byte key)")),

@@ -13,9 +13,9 @@ entry, and runs named daemon threads:
   When a TCP or serial connection drops it reopens it with jittered, capped exponential backoff.
 * one writer per extra output: :meth:`MavlinkLink.send` only queues frames for an output, so a
   congested or dead output (a wedged UART, a stalled TCP client) delays nobody but itself.
-* the heartbeat thread sends the bridge's own HEARTBEAT everywhere, asks the autopilot for the
-  output stream (MAV_CMD_SET_MESSAGE_INTERVAL, autopilot link only) every second while none
-  arrives, and notices when the stream stops.
+* the heartbeat thread sends the bridge's own HEARTBEAT everywhere, negotiates the rates of
+  the autopilot's output stream and of its HEARTBEAT (MAV_CMD_SET_MESSAGE_INTERVAL, autopilot
+  link only; :mod:`bridge.mavlink.streams`), and notices when the stream stops.
 
 Motor outputs and arming are obeyed only from the configured autopilot (system and component
 ID) on the autopilot's connection; an output can never move a motor. The bridge is no router:
@@ -76,6 +76,7 @@ from bridge.errors import ConfigError, LinkError
 from bridge.mavlink import load_dialect
 from bridge.mavlink.actuators import decoder_for
 from bridge.mavlink.frames import MAGIC_V2, Frame
+from bridge.mavlink.streams import StreamRequest, result_name
 from bridge.mavlink.transport import (
     ACCEPTED_URL_FORMS,
     DEFAULT_BAUD,
@@ -112,7 +113,8 @@ _NAN: Final = math.nan
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
 _POLL_S: Final = 0.1  # readers and writers wake at least this often to notice close()
-_REQUEST_PERIOD_NS: Final = 1_000_000_000  # ask for the stream this often while none arrives
+_REQUEST_PERIOD_NS: Final = 1_000_000_000  # check the streams (and ask) this often
+_HEARD_NS: Final = 3_000_000_000  # the autopilot is there: a HEARTBEAT within this (3 missed)
 _RATE_WINDOW_NS: Final = 1_000_000_000  # the arrival rate is measured over about this long
 _RATE_LOG_CHANGE: Final = 0.2  # log the arrival rate again when it moves by this fraction
 _BACKOFF_FIRST_S: Final = 0.1  # a restarting TCP peer is often listening again within this
@@ -342,6 +344,7 @@ class MavlinkLink:
         sink: InputSink | None,
         tlog: BinaryIO | None = None,
         uplink: Callable[[], Any] | None = None,
+        needed_rate_hz: float = 0.0,
     ) -> None:
         """``sink``: receives the autopilot's outputs and arming state; None when the owner of
         the autopilot's link acts on them (the daemon's control loop), which then reports the
@@ -351,6 +354,8 @@ class MavlinkLink:
         methods: ``fd``, ``recv``, ``write``, ``close``); None: pymavlink's transport for
         ``config.url``. The daemon passes the control loop's relay
         (:class:`bridge.relay.MainConnection`): the loop owns the real link.
+        ``needed_rate_hz``: the slowest output stream the control loop arms on (two inputs
+        per input timeout); a slower one is reported loudly. 0: no such limit.
 
         Raises:
             DialectError: the project's MAVLink dialect could not be generated or loaded.
@@ -391,8 +396,21 @@ class MavlinkLink:
         self._window_count = 0
         self._outputs_noted = 0  # the last total given to note_outputs
         self._logged_rate_hz = 0.0
-        self._requesting = False
+        self._needed_rate_hz = needed_rate_hz
+        self._slow_logged = False
         self._foreign_seen: set[tuple[int, int]] = set()
+        # The rates asked of the autopilot (MAV_CMD_SET_MESSAGE_INTERVAL): its outputs, and
+        # its HEARTBEAT, which carries the arming state. One request goes out per check, so
+        # a COMMAND_ACK (which does not say for which message) answers the newest request.
+        autopilot = f"autopilot {self._autopilot[0]}/{self._autopilot[1]}"
+        self._output_request = StreamRequest(self._output_name, autopilot, config.stream_rate_hz)
+        self._heartbeat_request = StreamRequest(
+            "HEARTBEAT", autopilot, config.autopilot_heartbeat_hz, gave_up_level=logging.WARNING
+        )
+        self._pending_request: StreamRequest | None = None
+        self._asked_hz: dict[str, float] = {}  # the rate last asked, per message: log changes
+        self._heartbeats = 0  # the autopilot's HEARTBEATs, for their arriving rate
+        self._heartbeats_checked = (0, 0)  # (count, monotonic ns) at the previous check
 
     # -- public API ------------------------------------------------------------------------
 
@@ -839,6 +857,9 @@ class MavlinkLink:
             return
         if not connection.is_autopilot:
             return  # an output can send commands, never motor outputs or arming
+        if kind == "COMMAND_ACK":
+            self._on_ack(msg)
+            return
         msg_id: int = msg.get_msgId()
         is_output = msg_id in self._decoder.msg_ids
         if not is_output and kind != "HEARTBEAT":
@@ -854,6 +875,7 @@ class MavlinkLink:
             return
         if not is_output:
             self.stats.last_heartbeat_ns = now
+            self._heartbeats += 1
             self._decoder.identify(msg.autopilot)
             if self._sink is not None:
                 self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
@@ -905,6 +927,23 @@ class MavlinkLink:
         )
         self._send_on(connection, ack)
 
+    def _on_ack(self, msg: Any) -> None:
+        """A COMMAND_ACK on the autopilot's connection: the answer to a stream request when it
+        comes from the autopilot, is for MAV_CMD_SET_MESSAGE_INTERVAL and names us (or no one:
+        MAVLink 1 has no target fields)."""
+        if (msg.get_srcSystem(), msg.get_srcComponent()) != self._autopilot:
+            return
+        if msg.command != self._dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        target = (getattr(msg, "target_system", 0), getattr(msg, "target_component", 0))
+        if target[0] and target != (self._mav.srcSystem, self._config.component_id):
+            return  # the answer to another component's request (a GCS's, forwarded)
+        request = self._pending_request
+        if request is None:
+            log.info("autopilot answered %s to no request of ours", result_name(msg.result))
+            return
+        request.on_ack(msg.result)
+
     def note_outputs(self, total: int, now_ns: int) -> None:
         """Output messages counted by whoever reads them (the control loop, which owns the
         autopilot's link and relays them only when recording): ``total`` since start, as of
@@ -927,17 +966,34 @@ class MavlinkLink:
                 rate = (self._window_count - count) * 1e9 / elapsed
                 self.stats.output_rate_hz = rate
                 self._window_start_ns, self._window_count = now, count
-                logged = self._logged_rate_hz
-                if logged == 0 or abs(rate - logged) > _RATE_LOG_CHANGE * logged:
-                    self._logged_rate_hz = rate
-                    log.info(
-                        "%s from %d/%d arriving at %.0f Hz (asked for %.0f Hz)",
-                        self._output_name,
-                        *self._autopilot,
-                        rate,
-                        self._config.stream_rate_hz,
-                    )
+                self._log_rate(rate)
         self.stats.last_output_ns = now
+
+    def _log_rate(self, rate_hz: float) -> None:
+        """Say the arriving rate when it first settles or moves, and loudly when it is too
+        slow for the control loop to arm on."""
+        logged = self._logged_rate_hz
+        if logged == 0 or abs(rate_hz - logged) > _RATE_LOG_CHANGE * logged:
+            self._logged_rate_hz = rate_hz
+            asked = self._output_request.asked_hz
+            log.info(
+                "%s from %d/%d arriving at %.0f Hz (%s)",
+                self._output_name,
+                *self._autopilot,
+                rate_hz,
+                f"asked for {asked:.0f} Hz" if asked else "not asked for a rate",
+            )
+        slow = rate_hz < self._needed_rate_hz
+        if slow and not self._slow_logged:
+            log.warning(
+                "%s from %d/%d arrives at %.0f Hz, too slow for input_timeout_ms (it needs "
+                "%.0f Hz or more): the motors will not arm on it",
+                self._output_name,
+                *self._autopilot,
+                rate_hz,
+                self._needed_rate_hz,
+            )
+        self._slow_logged = slow
 
     # -- heartbeat thread ------------------------------------------------------------------
 
@@ -964,31 +1020,48 @@ class MavlinkLink:
                 return
 
     def _check_stream(self, now: int) -> None:
-        """Once a second: notice a stopped stream, and ask for it while it is missing."""
-        last = self.stats.last_output_ns
-        if last and now - last <= _REQUEST_PERIOD_NS:
-            self._requesting = False
-            return
-        if self.stats.output_rate_hz > 0:
-            log.warning(
-                "no %s from %d/%d for %.1f s",
-                self._output_name,
-                *self._autopilot,
-                (now - last) / 1e9,
-            )
-        self.stats.output_rate_hz = 0.0
-        self._logged_rate_hz = 0.0
-        rate_hz = self._config.stream_rate_hz
-        if rate_hz <= 0:
-            return
+        """Once a second: notice a stopped stream, and negotiate the rates of the autopilot's
+        outputs and HEARTBEAT (:class:`~bridge.mavlink.streams.StreamRequest`)."""
+        stats = self.stats
+        last = stats.last_output_ns
+        if not (last and now - last <= _REQUEST_PERIOD_NS):
+            if stats.output_rate_hz > 0:
+                log.warning(
+                    "no %s from %d/%d for %.1f s",
+                    self._output_name,
+                    *self._autopilot,
+                    (now - last) / 1e9,
+                )
+            stats.output_rate_hz = 0.0
+            self._logged_rate_hz = 0.0
+        counted, since_ns = self._heartbeats_checked
+        heartbeats = self._heartbeats
+        self._heartbeats_checked = (heartbeats, now)
+        heartbeat_hz = (heartbeats - counted) * 1e9 / (now - since_ns) if since_ns else 0.0
+        heard = stats.last_heartbeat_ns != 0 and now - stats.last_heartbeat_ns <= _HEARD_NS
+        streams = [
+            (self._output_request, self._output_msg_id, stats.output_rate_hz),
+            (self._heartbeat_request, self._dialect.MAVLINK_MSG_ID_HEARTBEAT, heartbeat_hz),
+        ]
+        if self._pending_request is self._output_request:
+            streams.reverse()  # take turns, so that neither starves the other
+        for request, msg_id, arriving_hz in streams:
+            rate_hz = request.due(arriving_hz, heard)
+            if rate_hz is not None:
+                self._ask_rate(request, msg_id, rate_hz)
+                return  # one request per check: the next ACK is its answer
+
+    def _ask_rate(self, request: StreamRequest, msg_id: int, rate_hz: float) -> None:
+        """Send MAV_CMD_SET_MESSAGE_INTERVAL for ``msg_id`` at ``rate_hz`` to the autopilot."""
         log.log(
-            logging.DEBUG if self._requesting else logging.INFO,
+            logging.DEBUG if self._asked_hz.get(request.name) == rate_hz else logging.INFO,
             "asking %d/%d for %s at %.0f Hz (MAV_CMD_SET_MESSAGE_INTERVAL)",
             *self._autopilot,
-            self._output_name,
+            request.name,
             rate_hz,
         )
-        self._requesting = True
+        self._asked_hz[request.name] = rate_hz
+        self._pending_request = request
         if self._uplink is None:
             return
         # To the autopilot only: a GCS on an output has no use for it.
@@ -998,7 +1071,7 @@ class MavlinkLink:
                 *self._autopilot,
                 self._dialect.MAV_CMD_SET_MESSAGE_INTERVAL,
                 0,
-                float(self._output_msg_id),
+                float(msg_id),
                 float(round(1e6 / rate_hz)),  # interval in µs
                 0,
                 0,

@@ -1,0 +1,193 @@
+"""Asking the autopilot for a message stream, and making sure the ask worked.
+
+An autopilot streams SERVO_OUTPUT_RAW (or ACTUATOR_OUTPUT_STATUS, ...) and HEARTBEAT at rates
+of its own choosing until someone asks otherwise with MAV_CMD_SET_MESSAGE_INTERVAL, and each
+asker learns only from the COMMAND_ACK and from what then arrives whether it worked. Seen on
+the real autopilots (README "Against real autopilots"):
+
+* ArduCopter DENIES a rate faster than its main loop allows (400 Hz on a 400 Hz loop) and
+  says why in a STATUSTEXT; it accepts 200 Hz.
+* PX4 keeps its default (SERVO_OUTPUT_RAW at 10 Hz on the onboard link) until a request is
+  ACCEPTED, and a request sent on a ``udpin`` link before the autopilot's first packet goes
+  nowhere: nobody answers.
+* PX4 ACCEPTS 200 Hz and delivers what its loop allows (~124 Hz for the SIH quad).
+
+So a :class:`StreamRequest` asks again every check (a second) until the stream arrives at the
+rate asked, or the autopilot ACCEPTED that rate and sends what it can. It steps down to the
+next lower rate (:data:`FALLBACK_RATES_HZ`) on a refusal, or when the autopilot is there but
+no stream comes of three requests; refused at the lowest, it stops asking until the stream
+stops and starts again (a restarted autopilot). It says each of these once, at a level that
+matches: never waiting silently. It does no I/O: the link sends the request it
+returns and feeds it the ACKs and the arriving rate.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+log = logging.getLogger(__name__)
+
+# MAV_RESULT values (common.xml).
+MAV_RESULT_ACCEPTED: Final = 0
+MAV_RESULT_TEMPORARILY_REJECTED: Final = 1
+MAV_RESULT_DENIED: Final = 2
+MAV_RESULT_UNSUPPORTED: Final = 3
+MAV_RESULT_FAILED: Final = 4
+MAV_RESULT_IN_PROGRESS: Final = 5
+_RESULT_NAMES: Final = {
+    MAV_RESULT_ACCEPTED: "ACCEPTED",
+    MAV_RESULT_TEMPORARILY_REJECTED: "TEMPORARILY_REJECTED",
+    MAV_RESULT_DENIED: "DENIED",
+    MAV_RESULT_UNSUPPORTED: "UNSUPPORTED",
+    MAV_RESULT_FAILED: "FAILED",
+    MAV_RESULT_IN_PROGRESS: "IN_PROGRESS",
+}
+# Refusals that asking again at the same rate will not change.
+_REFUSALS: Final = frozenset({MAV_RESULT_DENIED, MAV_RESULT_UNSUPPORTED, MAV_RESULT_FAILED})
+
+FALLBACK_RATES_HZ: Final = (200.0, 100.0, 50.0, 25.0, 10.0)
+"""The lower rates asked for, in turn, below the configured one, when a rate is refused."""
+NEAR: Final = 0.8
+"""A stream arriving at this fraction of the asked rate or more is what was asked for."""
+UNANSWERED_BEFORE_STEP: Final = 3
+"""Requests the autopilot (heard, so present) neither answered nor followed before the next
+lower rate is tried."""
+
+
+def result_name(result: int) -> str:
+    """``MAV_RESULT_DENIED`` for 2, ... (the number for a value the definitions lack)."""
+    return f"MAV_RESULT_{_RESULT_NAMES.get(result, str(result))}"
+
+
+def rate_ladder(wanted_hz: float) -> tuple[float, ...]:
+    """The rates to ask for, best first: ``wanted_hz``, then each fallback below it."""
+    return (wanted_hz, *(rate for rate in FALLBACK_RATES_HZ if rate < wanted_hz))
+
+
+@dataclass
+class StreamRequest:
+    """The negotiation of one message's rate with one autopilot.
+
+    Call :meth:`due` once a check period (a second) with the rate arriving now; send the
+    request it returns (a rate in Hz), if any, and pass the autopilot's COMMAND_ACK for it to
+    :meth:`on_ack`.
+    """
+
+    name: str
+    """The message's name, for the log (``SERVO_OUTPUT_RAW``)."""
+    source: str
+    """Who is asked, for the log (``autopilot 1/1``)."""
+    wanted_hz: float
+    """The configured rate; 0 = ask for nothing."""
+    gave_up_level: int = logging.ERROR
+    """How loudly to say that every rate was refused (the motor outputs: an error)."""
+
+    def __post_init__(self) -> None:
+        self._ladder: Sequence[float] = rate_ladder(self.wanted_hz) if self.wanted_hz > 0 else ()
+        self._was_arriving = False
+        self._reset()
+
+    def _reset(self) -> None:
+        self._rung = 0
+        self._accepted = False
+        self._gave_up = False  # refused down to the lowest rate: asking no more
+        self._unanswered = 0  # requests sent while the autopilot was there, not answered
+        self._limit_logged = False
+        self._silence_logged = False
+
+    @property
+    def asked_hz(self) -> float:
+        """The rate asked for now (0: none)."""
+        return self._ladder[self._rung] if self._ladder else 0.0
+
+    @property
+    def accepted(self) -> bool:
+        """The autopilot ACCEPTED :attr:`asked_hz` (and the stream has not stopped since)."""
+        return self._accepted
+
+    def due(self, arriving_hz: float, autopilot_heard: bool) -> float | None:
+        """The rate to ask for now, or None when nothing needs asking. ``arriving_hz``: the
+        message's arriving rate over about the last second (0: none); ``autopilot_heard``:
+        the autopilot's HEARTBEAT is current (it is there to answer)."""
+        if not self._ladder:
+            return None
+        if arriving_hz <= 0:
+            if self._was_arriving:
+                # The stream stopped: an autopilot that restarted forgot every interval set.
+                self._was_arriving = False
+                self._reset()
+            if autopilot_heard and self._unanswered >= UNANSWERED_BEFORE_STEP:
+                self._step_down(f"did not come of {self._unanswered} unanswered requests")
+            if self._gave_up:
+                return None
+        else:
+            self._was_arriving = True
+            if arriving_hz >= NEAR * self.asked_hz:
+                return None
+            if self._accepted:
+                if not self._limit_logged:
+                    self._limit_logged = True
+                    log.warning(
+                        "%s ACCEPTED %s at %.0f Hz but sends %.0f Hz: taking that as its limit",
+                        self.source,
+                        self.name,
+                        self.asked_hz,
+                        arriving_hz,
+                    )
+                return None
+            if self._gave_up:
+                return None
+            if self._unanswered >= UNANSWERED_BEFORE_STEP and not self._silence_logged:
+                self._silence_logged = True
+                log.warning(
+                    "%s does not answer MAV_CMD_SET_MESSAGE_INTERVAL for %s at %.0f Hz; it "
+                    "arrives at %.0f Hz; asking on",
+                    self.source,
+                    self.name,
+                    self.asked_hz,
+                    arriving_hz,
+                )
+        if autopilot_heard:
+            self._unanswered += 1
+        return self.asked_hz
+
+    def on_ack(self, result: int) -> None:
+        """The autopilot's COMMAND_ACK to the newest request."""
+        self._unanswered = 0
+        asked = self.asked_hz
+        if result == MAV_RESULT_ACCEPTED:
+            if not self._accepted:
+                log.info("%s ACCEPTED %s at %.0f Hz", self.source, self.name, asked)
+            self._accepted = True
+            return
+        self._accepted = False
+        if result in _REFUSALS:
+            self._step_down(f"at {asked:.0f} Hz: {result_name(result)}")
+            return
+        log.info(
+            "%s answered %s for %s at %.0f Hz", self.source, result_name(result), self.name, asked
+        )
+
+    def _step_down(self, why: str) -> None:
+        self._unanswered = 0
+        if self._rung + 1 < len(self._ladder):
+            self._rung += 1
+            log.warning(
+                "%s: %s %s; asking for %.0f Hz instead",
+                self.source,
+                self.name,
+                why,
+                self.asked_hz,
+            )
+        elif not self._gave_up:
+            self._gave_up = True
+            log.log(
+                self.gave_up_level,
+                "%s: %s %s, the lowest rate tried; asking no more and taking what it sends",
+                self.source,
+                self.name,
+                why,
+            )
