@@ -244,9 +244,7 @@ class AutopilotInput:
             if fractions is None:
                 counters[self._i_invalid] += 1
         self.fractions = fractions
-        inputs.have_input = True
-        inputs.input_valid = fractions is not None
-        inputs.input_produced_ns = produced_ns
+        inputs.note_input(produced_ns, fractions is not None)
         counters[self._i_age] = (now_ns - produced_ns) // 1000
         self._inputs_seen = values
         self._snapshot.write(produced_ns, fractions, inputs.armed, inputs.armed_heard_ns, values)

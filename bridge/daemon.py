@@ -78,6 +78,10 @@ STATE_REPORTS: dict[LoopState, tuple[int, str]] = {
         SEVERITY_CRITICAL,
         "ESC out: FAILSAFE autopilot HEARTBEAT lost, motors stopped",
     ),
+    LoopState.SLOW_STREAM: (
+        SEVERITY_CRITICAL,
+        "ESC out: motor outputs too slow to arm on, motors stopped",
+    ),
 }
 # After accepting a motor test, the supervisor allows the loop this long to start it before a
 # loop not in MOTOR_TEST means the test was ended (armed, autopilot lost).
@@ -398,7 +402,11 @@ class Supervisor:
             return relayed.pop()
 
         # No input sink: the loop acts on the autopilot's outputs and arming, and counts them.
-        self.link = MavlinkLink(config.mavlink, None, tlog=tlog, uplink=uplink)
+        # Two inputs per input timeout at least: the loop arms on nothing slower.
+        needed_rate_hz = 2000 / config.output.input_timeout_ms
+        self.link = MavlinkLink(
+            config.mavlink, None, tlog=tlog, uplink=uplink, needed_rate_hz=needed_rate_hz
+        )
         self.motor_test = MotorTestControl(
             limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
             config,

@@ -132,7 +132,7 @@ class CommandSelector:
         inputs, limits = self._inputs, self._limits
         if motor_test_ended(inputs, now_ns, limits):
             inputs.motor_test_until_ns = 0  # arming (or losing the autopilot) ends it
-        state = decide(inputs, now_ns, limits)
+        state = decide(inputs, now_ns, limits, self.state)
         if state != self.state:
             if state == LoopState.RUNNING:
                 self._slew.reset(self._zeros)  # after any safe spell, spool up from stopped

@@ -17,6 +17,11 @@ The rules, first match wins:
 4. arming required and the autopilot disarmed: ``DISARMED``; arming required and its
    HEARTBEAT older than the arming timeout: ``HEARTBEAT_LOST`` (ArduPilot and PX4 send one a
    second on every link, so three missing ones mean the autopilot or the link is gone);
+   the motors stopped (the previous tick was none of ``RUNNING``, ``STALE``, ``INVALID``) and
+   the inputs arriving less often than twice per input timeout (their mean interval, see
+   :meth:`ControlInputs.note_input`): ``SLOW_STREAM``. A stream that slow would flap between
+   running and stale, so it never starts the motors; one that slows in flight is left to the
+   staleness rule, which stops them only for as long as an input is missing;
 5. the newest input produced longer ago than the input timeout: ``STALE``. Produced, not
    received: an input that sat in a buffer (a stalled process, a full socket) past the timeout
    never moves a motor;
@@ -44,10 +49,19 @@ class LoopState(enum.IntEnum):
     FAILED = 8  # the loop could not start (e.g. the bus did not open)
     MOTOR_TEST = 9  # disarmed, a motor test runs: one motor at its test throttle, others safe
     HEARTBEAT_LOST = 10  # the autopilot's arming state is older than the arming timeout
+    SLOW_STREAM = 11  # the inputs arrive too seldom for the input timeout to start the motors
 
 
 SENDING_COMMANDS = frozenset({LoopState.RUNNING, LoopState.MOTOR_TEST})
 """The states in which something other than the safe values goes out."""
+
+ENGAGED = frozenset({LoopState.RUNNING, LoopState.STALE, LoopState.INVALID})
+"""The states of a vehicle in flight: RUNNING, or stopped only until the next good input."""
+
+INTERVAL_WEIGHT = 8
+"""The input interval estimate moves 1/8 of the way to each new interval (about the last 8)."""
+MIN_INTERVALS = 3
+"""Intervals seen before the estimate counts: until then the stream is unknown, so slow."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +88,28 @@ class ControlInputs:
     """When the autopilot's arming state was last heard (monotonic); 0 = never."""
     motor_test_until_ns: int = 0
     """When the running motor test ends (monotonic); 0 = none."""
+    input_interval_ns: int = 0
+    """The mean interval between the autopilot's inputs (by when it produced them), over
+    about the last :data:`INTERVAL_WEIGHT`; meaningful after :data:`MIN_INTERVALS`."""
+    input_intervals: int = 0
+    """Intervals behind :attr:`input_interval_ns` (capped at :data:`MIN_INTERVALS`)."""
+
+    def note_input(self, produced_ns: int, valid: bool) -> None:
+        """A new input, produced at ``produced_ns`` (never before the newest so far)."""
+        if self.have_input:
+            interval = produced_ns - self.input_produced_ns
+            if self.input_intervals == 0:
+                self.input_interval_ns = interval
+            else:
+                self.input_interval_ns += (interval - self.input_interval_ns) // INTERVAL_WEIGHT
+            self.input_intervals = min(self.input_intervals + 1, MIN_INTERVALS)
+        self.have_input = True
+        self.input_valid = valid
+        self.input_produced_ns = produced_ns
+
+    def stream_too_slow(self, input_timeout_ns: int) -> bool:
+        """Fewer than two inputs per ``input_timeout_ns``, or too few seen to tell."""
+        return self.input_intervals < MIN_INTERVALS or 2 * self.input_interval_ns > input_timeout_ns
 
 
 def arming_fresh(inputs: ControlInputs, now_ns: int, limits: SafetyLimits) -> bool:
@@ -82,8 +118,10 @@ def arming_fresh(inputs: ControlInputs, now_ns: int, limits: SafetyLimits) -> bo
     return heard != 0 and now_ns - heard <= limits.arming_timeout_ns
 
 
-def decide(inputs: ControlInputs, now_ns: int, limits: SafetyLimits) -> LoopState:
-    """The state for this tick (see the module docstring for the rules)."""
+def decide(
+    inputs: ControlInputs, now_ns: int, limits: SafetyLimits, previous: LoopState
+) -> LoopState:
+    """The state for this tick, after ``previous`` (see the module docstring for the rules)."""
     if inputs.stopping:
         return LoopState.STOPPING
     fresh = arming_fresh(inputs, now_ns, limits)
@@ -96,6 +134,8 @@ def decide(inputs: ControlInputs, now_ns: int, limits: SafetyLimits) -> LoopStat
             return LoopState.HEARTBEAT_LOST if inputs.armed_heard_ns else LoopState.DISARMED
         if not inputs.armed:
             return LoopState.DISARMED
+    if previous not in ENGAGED and inputs.stream_too_slow(limits.input_timeout_ns):
+        return LoopState.SLOW_STREAM
     if now_ns - inputs.input_produced_ns > limits.input_timeout_ns:
         return LoopState.STALE
     if not inputs.input_valid:

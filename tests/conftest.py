@@ -323,9 +323,7 @@ def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Dae
         daemon.stop()
 
 
-def _stream_outputs(
-    port: int, pwm: list[int], rate_hz: float, priority: int, control: Any, stop: Any
-) -> None:
+def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop: Any) -> None:
     """The body of :class:`RealtimeAutopilot`'s process."""
     with contextlib.suppress(PermissionError, OSError):
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
@@ -335,7 +333,6 @@ def _stream_outputs(
     mav = conn.mav
     values = (list(pwm) + [0] * 16)[:16]
     extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
-    period_ns = round(1e9 / rate_hz)
     next_ns = time.monotonic_ns()
     next_beat_ns = next_ns
     largest_gap_ns = last_ns = 0
@@ -359,7 +356,7 @@ def _stream_outputs(
                 largest_gap_ns = max(largest_gap_ns, now - last_ns)
             last_ns = now
         control[3] = largest_gap_ns // 1000
-        next_ns += period_ns
+        next_ns += control[4]  # the period, which the test may change
         delay = next_ns - time.monotonic_ns()
         if delay > 0:
             time.sleep(delay / 1e9)
@@ -374,12 +371,12 @@ class RealtimeAutopilot:
 
     def __init__(self, port: int, pwm: list[int], rate_hz: float = 200.0) -> None:
         ctx = multiprocessing.get_context("spawn")
-        # armed, heartbeats on, outputs on, the largest gap between two sends (µs)
-        self._control = ctx.RawArray("q", [1, 1, 1, 0])
+        # armed, heartbeats on, outputs on, the largest gap between two sends (µs), period (ns)
+        self._control = ctx.RawArray("q", [1, 1, 1, 0, round(1e9 / rate_hz)])
         self._stop = ctx.Event()
         self._process = ctx.Process(
             target=_stream_outputs,
-            args=(port, pwm, rate_hz, 60, self._control, self._stop),
+            args=(port, pwm, 60, self._control, self._stop),
             name="rt-autopilot",
             daemon=True,
         )
@@ -394,6 +391,10 @@ class RealtimeAutopilot:
 
     def outputs(self, on: bool) -> None:
         self._control[2] = int(on)
+
+    def rate(self, rate_hz: float) -> None:
+        """Send the outputs at ``rate_hz`` from the next one on."""
+        self._control[4] = round(1e9 / rate_hz)
 
     def close(self) -> None:
         self._stop.set()

@@ -77,6 +77,8 @@ def test_the_loop_reads_the_autopilot_itself_and_sends_the_mix(
         while time.monotonic() < deadline and stats["state"] != LoopState.RUNNING:
             time.sleep(0.01)
         assert stats["state"] == LoopState.RUNNING
+        while observer.recv(0) is not None:
+            pass  # what was queued before
         assert set(_throttles(observer, 20)[-10:]) == {(500, 1000, 1500, 2000)}
         assert stats["input_outputs"] > 0 and stats["input_heartbeats"] > 0
         autopilot.pause_outputs()
@@ -91,7 +93,10 @@ def test_the_loop_reads_the_autopilot_itself_and_sends_the_mix(
 
 
 def test_a_fault_in_a_tick_sends_safe_values_and_the_next_tick_runs_again() -> None:
-    inputs = ControlInputs(have_input=True, input_valid=True, armed=True)
+    # A stream at 200 Hz for long enough to arm on.
+    inputs = ControlInputs(
+        have_input=True, input_valid=True, armed=True, input_interval_ns=5 * MS, input_intervals=3
+    )
     limits = SafetyLimits(True, 100 * MS, 3000 * MS)
     selector = CommandSelector(
         CkescDriver("12b", [1, 2, 3, 4]), SlewLimiter([0.0] * 4, [0.0] * 4), limits, inputs, 4

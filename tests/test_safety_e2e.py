@@ -35,11 +35,11 @@ def wait_exit(daemon: Daemon, timeout_s: float = 10.0) -> int:
 
 
 @pytest.fixture
-def rt_autopilot(mavlink_port: int) -> Iterator[Callable[[list[int]], RealtimeAutopilot]]:
+def rt_autopilot(mavlink_port: int) -> Iterator[Callable[..., RealtimeAutopilot]]:
     started: list[RealtimeAutopilot] = []
 
-    def start(pwm: list[int]) -> RealtimeAutopilot:
-        pilot = RealtimeAutopilot(mavlink_port, pwm)
+    def start(pwm: list[int], rate_hz: float = 200.0) -> RealtimeAutopilot:
+        pilot = RealtimeAutopilot(mavlink_port, pwm, rate_hz)
         started.append(pilot)
         return pilot
 
@@ -146,7 +146,7 @@ def test_the_main_process_dying_makes_the_loop_flush_at_once(
 
 def test_a_stalled_main_process_does_not_touch_the_control_path(
     start_daemon: Callable[..., Daemon],
-    rt_autopilot: Callable[[list[int]], RealtimeAutopilot],
+    rt_autopilot: Callable[..., RealtimeAutopilot],
     observer: Observer,
 ) -> None:
     """The main process (telemetry, Zenoh, commands) stopped for 1.5 s: not one safe frame."""
@@ -167,7 +167,7 @@ def test_a_stalled_main_process_does_not_touch_the_control_path(
 
 def test_input_that_sat_in_the_socket_past_the_timeout_never_moves_a_motor(
     start_daemon: Callable[..., Daemon],
-    rt_autopilot: Callable[[list[int]], RealtimeAutopilot],
+    rt_autopilot: Callable[..., RealtimeAutopilot],
     observer: Observer,
 ) -> None:
     """The loop stopped for 3 s while the autopilot went silent after 0.3 s: the packets left
@@ -239,7 +239,7 @@ def test_a_burst_of_old_inputs_is_judged_by_the_autopilots_clock(
 
 def test_a_lost_heartbeat_means_disarmed_after_the_arming_timeout(
     start_daemon: Callable[..., Daemon],
-    rt_autopilot: Callable[[list[int]], RealtimeAutopilot],
+    rt_autopilot: Callable[..., RealtimeAutopilot],
     observer: Observer,
     tmp_path: Path,
 ) -> None:
@@ -260,6 +260,34 @@ def test_a_lost_heartbeat_means_disarmed_after_the_arming_timeout(
     expect_throttles(observer, HOVER, 3.0)
     daemon.stop()
     assert "FAILSAFE autopilot HEARTBEAT lost" in daemon.output
+
+
+def test_a_stream_too_slow_never_starts_the_motors_and_one_slowing_in_flight_keeps_them(
+    start_daemon: Callable[..., Daemon],
+    rt_autopilot: Callable[..., RealtimeAutopilot],
+    observer: Observer,
+) -> None:
+    """PX4's default 10 Hz against input_timeout_ms 100: it would flap running/stale. At 8 Hz
+    armed nothing spins; at 200 Hz it does; slowed to 15 Hz in flight (67 ms apart, inside the
+    timeout) it goes on: no motor stop the autopilot did not ask for."""
+    daemon = start_daemon()
+    daemon.loop_pid()  # its link is open: the first HEARTBEAT is heard
+    pilot = rt_autopilot([1500] * 4, rate_hz=8)
+    started = time.monotonic()
+    time.sleep(2.5)
+    slow = throttles_since(observer, started)
+    assert len(slow) > 100 and all(t == SAFE for _, t in slow)
+    pilot.rate(200)
+    expect_throttles(observer, HOVER, 2.0, after=time.monotonic())
+    pilot.rate(15)
+    slowed_at = time.monotonic()
+    time.sleep(1.5)
+    in_flight = throttles_since(observer, slowed_at)
+    assert len(in_flight) > 100
+    assert [t for _, t in in_flight if t == SAFE] == [], f"largest gap {pilot.largest_gap_ms} ms"
+    daemon.stop()
+    assert "ESC out: motor outputs too slow to arm on, motors stopped" in daemon.output
+    assert "too slow for input_timeout_ms (it needs 20 Hz or more)" in daemon.output
 
 
 @pytest.mark.parametrize("pwm", [3000, 65535, 799, 2201])
@@ -318,7 +346,7 @@ def test_out_of_range_floats_on_a_float_source_are_invalid(
 @pytest.mark.parametrize("load", ["busy2", "can-flood"])
 def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
     start_daemon: Callable[..., Daemon],
-    rt_autopilot: Callable[[list[int]], RealtimeAutopilot],
+    rt_autopilot: Callable[..., RealtimeAutopilot],
     observer: Observer,
     can_port: int,
     load: str,

@@ -9,7 +9,8 @@ but the newest valid input's command while running, anything but the test thrott
 motor under test (and 0 on the others) during a motor test.
 
 Events: an input (valid, out of range, or one the mixer cannot take: a fault), produced some
-time before it arrives (late delivery, a stalled process); the autopilot's HEARTBEAT armed or
+time before it arrives (late delivery, a stalled process); a stream of inputs at some interval
+(fast enough to start the motors or not); the autopilot's HEARTBEAT armed or
 disarmed; silence (time passing: staleness, HEARTBEAT loss); a motor test or its stop; a stop
 signal or the main process's death (the loop flushes); ticks. Two drivers: hypothesis's state
 machine (shrinks a failure to its shortest sequence) and a seeded random walk that runs many
@@ -53,15 +54,31 @@ class Model:
     command: list[float] | None = None  # the newest input's fractions; None: invalid
     test: MotorTest | None = None
     test_cancelled: bool = False
+    # The stream's mean interval, as README "Safe values" defines it: each new interval moves
+    # it 1/8 of the way; it counts after 3 intervals.
+    intervals: int = 0
+    interval_ns: int = 0
+    engaged: bool = False  # in flight: running, or stopped only by a stale or invalid input
     seq: int = 0
     log: list[str] = field(default_factory=list)
 
     def heartbeat_fresh(self) -> bool:
         return self.heard_ns is not None and self.now_ns - self.heard_ns <= ARMING_TIMEOUT_NS
 
+    def note_input(self, produced_ns: int) -> None:
+        if self.produced_ns is not None:
+            interval = produced_ns - self.produced_ns
+            if self.intervals == 0:
+                self.interval_ns = interval
+            else:
+                self.interval_ns += (interval - self.interval_ns) // 8
+            self.intervals += 1
+        self.produced_ns = produced_ns
+
     def allowed(self) -> list[int]:
         """The throttle each motor must get now."""
         safe = [0] * N
+        engaged, self.engaged = self.engaged, False
         if self.stopping:
             return safe
         test = self.test
@@ -77,6 +94,10 @@ class Model:
                 return safe
         if self.produced_ns is None or not self.heartbeat_fresh() or not self.armed:
             return safe
+        slow = self.intervals < 3 or 2 * self.interval_ns > INPUT_TIMEOUT_NS
+        if slow and not engaged:
+            return safe  # a stream too slow never starts the motors
+        self.engaged = True
         if self.now_ns - self.produced_ns > INPUT_TIMEOUT_NS or self.command is None:
             return safe
         return [int(fraction * FULL + 0.5) for fraction in self.command]
@@ -104,11 +125,16 @@ class Harness:
         model.log.append(f"input {fractions} late {late_ms} ms fault={fault}")
         # A fault: a vector the slew limiter cannot take (the loop's tick fault).
         self.fractions = [0.5] * (N - 1) if fault else fractions
-        self.inputs.have_input = True
-        self.inputs.input_valid = fractions is not None
-        self.inputs.input_produced_ns = produced
-        model.produced_ns = produced
+        self.inputs.note_input(produced, fractions is not None)
+        model.note_input(produced)
         model.command = None if fault or fractions is None else fractions
+
+    def stream(self, fractions: list[float], count: int, interval_ms: float) -> None:
+        """``count`` inputs ``interval_ms`` apart, a tick after each."""
+        for _ in range(count):
+            self.input(fractions, 0)
+            self.check_tick()
+            self.advance(interval_ms)
 
     def heartbeat(self, armed: bool) -> None:
         self.model.log.append(f"heartbeat armed={armed}")
@@ -164,6 +190,14 @@ class SafetyMachine(RuleBasedStateMachine):
     def input(self, fractions: list[float], late_ms: int) -> None:
         self.h.input(fractions, late_ms)
 
+    @rule(
+        fractions=FRACTIONS,
+        count=st.integers(1, 12),
+        interval_ms=st.sampled_from([2.5, 5, 20, 49, 51, 60, 99]),
+    )
+    def stream(self, fractions: list[float], count: int, interval_ms: float) -> None:
+        self.h.stream(fractions, count, interval_ms)
+
     @rule(late_ms=st.sampled_from([0, 20]))
     def invalid_input(self, late_ms: int) -> None:
         self.h.input(None, late_ms)
@@ -218,7 +252,13 @@ def test_random_walks_never_send_an_unsafe_frame() -> None:
         h = Harness()
         for _ in range(rng.randint(5, 40)):
             event = rng.random()
-            if event < 0.30:
+            if event < 0.12:
+                h.stream(
+                    [rng.random() for _ in range(N)],
+                    rng.randint(1, 12),
+                    rng.choice((2.5, 5, 20, 49, 51, 60, 99)),
+                )
+            elif event < 0.30:
                 h.input(
                     [rng.choice((0.0, 0.3, 1.0, rng.random())) for _ in range(N)],
                     rng.choice((0, 3, 50, 101, 2700)),
