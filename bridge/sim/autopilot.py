@@ -3,7 +3,9 @@
 :func:`outputs_at` is the whole flight as a pure function of time: the phase, the arming state
 and one PWM value per motor. :class:`SimAutopilot` plays it over MAVLink 2 on UDP (system 1,
 component 1, to a bridge's ``udpin`` link): HEARTBEAT at 5 Hz and on every arming change, with
-the armed flag in ``base_mode`` while armed, and SERVO_OUTPUT_RAW at 50 Hz.
+the armed flag in ``base_mode`` while armed, and SERVO_OUTPUT_RAW at 50 Hz. Like ArduCopter it
+answers MAV_CMD_SET_MESSAGE_INTERVAL for those two with a COMMAND_ACK: ACCEPTED and streamed at
+the rate asked up to its loop rate (:data:`LOOP_HZ`), DENIED above it.
 
 The flight (:data:`PHASES`, 30 s in all):
 
@@ -99,8 +101,11 @@ WAITING: Final = "waiting"
 """The phase before :meth:`SimAutopilot.fly`: disarmed, 1000 µs."""
 
 SERVO_HZ: Final = 50.0
-HEARTBEAT_EVERY: Final = 10
-"""One HEARTBEAT every this many SERVO_OUTPUT_RAW (5 Hz at 50 Hz)."""
+"""SERVO_OUTPUT_RAW until asked for another rate."""
+HEARTBEAT_HZ: Final = 5.0
+"""HEARTBEAT until asked for another rate."""
+LOOP_HZ: Final = 400.0
+"""The fastest rate it streams anything at (ArduCopter's main loop rate): faster is DENIED."""
 CLOSE_BURST: Final = 5
 """Disarmed HEARTBEAT + stopped outputs sent by close(), one per output period."""
 
@@ -305,6 +310,11 @@ class SimAutopilot:
         self._out: _UdpOut | None = None
         self._mav: Any = None
         self._dialect: Any = None
+        self._parser: Any = None
+        self.servo_hz = SERVO_HZ
+        """The SERVO_OUTPUT_RAW rate now (the bridge may ask for another)."""
+        self.heartbeat_hz = HEARTBEAT_HZ
+        """The HEARTBEAT rate now."""
 
     @property
     def flight_time_s(self) -> float:
@@ -346,6 +356,8 @@ class SimAutopilot:
         self._mav = self._dialect.MAVLink(
             self._out, srcSystem=self.system, srcComponent=self.component
         )
+        self._parser = self._dialect.MAVLink(None)
+        self._parser.robust_parsing = True
         self._thread = threading.Thread(target=self._run, name="sim-autopilot", daemon=True)
         self._thread.start()
 
@@ -403,27 +415,28 @@ class SimAutopilot:
         return outputs_at(t, self.airframe)
 
     def _run(self) -> None:
-        period = 1.0 / SERVO_HZ
-        due = time.monotonic()
-        tick = 0
+        servo_due = beat_due = time.monotonic()
         was_armed: bool | None = None
         while not self._stop.is_set():
+            now = time.monotonic()
             phase, armed, pwm = self._now()
-            if tick % HEARTBEAT_EVERY == 0 or armed != was_armed:
+            if now >= beat_due or armed != was_armed:
                 self._heartbeat(armed)
-            self._servo_output_raw(pwm)
-            self.phase, self.armed, self.pwm = phase, armed, tuple(pwm)
+                beat_due = max(beat_due + 1.0 / self.heartbeat_hz, now)
+            if now >= servo_due:
+                self._servo_output_raw(pwm)
+                self.phase, self.armed, self.pwm = phase, armed, tuple(pwm)
+                # No burst after a stall: a late send starts the rhythm again.
+                servo_due = max(servo_due + 1.0 / self.servo_hz, now)
             was_armed = armed
-            tick += 1
             self._drain()
-            due = max(due + period, time.monotonic() - period)  # no burst after a stall
-            self._stop.wait(max(0.0, due - time.monotonic()))
+            self._stop.wait(max(0.0, min(servo_due, beat_due) - time.monotonic()))
         stopped = [PWM_STOP_US] * self.motors
         self.phase, self.armed, self.pwm = PHASES[-1][0], False, tuple(stopped)
         for _ in range(CLOSE_BURST):
             self._heartbeat(False)
             self._servo_output_raw(stopped)
-            time.sleep(period)
+            time.sleep(1.0 / SERVO_HZ)
 
     def _heartbeat(self, armed: bool) -> None:
         d = self._dialect
@@ -445,12 +458,39 @@ class SimAutopilot:
         self.sent += 1
 
     def _drain(self) -> None:
-        """Read and drop what the bridge sends back (its HEARTBEAT, ESC telemetry, requests)."""
+        """Read what the bridge sends back: answer its stream requests, drop the rest (its
+        HEARTBEAT, ESC telemetry)."""
         sock = self._sock
         if sock is None:
             return
         for _ in range(64):
             try:
-                sock.recv(4096)
+                data = sock.recv(4096)
             except OSError:  # nothing more (BlockingIOError), or an ICMP error
                 return
+            for msg in self._parser.parse_buffer(data) or []:
+                if msg.get_type() == "COMMAND_LONG":
+                    self._on_command(msg)
+
+    def _on_command(self, msg: Any) -> None:
+        d = self._dialect
+        if (msg.target_system, msg.target_component) not in (
+            (self.system, self.component),
+            (self.system, 0),
+            (0, 0),
+        ) or msg.command != d.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        message_id, interval_us = int(msg.param1), msg.param2
+        result = d.MAV_RESULT_UNSUPPORTED
+        if message_id in (d.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, d.MAVLINK_MSG_ID_HEARTBEAT):
+            rate_hz = 1e6 / interval_us if interval_us > 0 else 0.0
+            result = d.MAV_RESULT_DENIED
+            if 0 < rate_hz <= LOOP_HZ:
+                result = d.MAV_RESULT_ACCEPTED
+                if message_id == d.MAVLINK_MSG_ID_HEARTBEAT:
+                    self.heartbeat_hz = rate_hz
+                else:
+                    self.servo_hz = rate_hz
+        self._mav.command_ack_send(
+            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )

@@ -6,26 +6,32 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
 import tomllib
 import uuid
 from pathlib import Path
+from typing import Any
 
 import pytest
+from pymavlink import mavutil
 
 from bridge import preflight
 from bridge.config import build_config
 from bridge.demo import DemoOptions, DemoPorts, bridge_config, bridge_settings, toml_text
+from bridge.mavlink import load_dialect
 from bridge.mixer import load_mixer
 from bridge.sim.autopilot import (
     AIRFRAMES,
     ARMED_PHASES,
     FLIGHT_S,
+    LOOP_HZ,
     PHASES,
     PWM_HOVER_US,
     Airframe,
+    SimAutopilot,
     motor_count,
     outputs_at,
     phase_start,
@@ -239,3 +245,56 @@ def test_demo_reports_a_child_that_dies_and_stops_the_rest() -> None:
     assert "the sim (esc-bridge sim) exited early with status -9" in err, err
     assert "failed after" in out and "bridge exit status 0" in out, out[-1000:]
     assert _processes_with(marker) == []
+
+
+# -- the simulated autopilot on the wire -----------------------------------------------------
+
+
+def test_the_sim_autopilot_answers_stream_requests_as_arducopter_does() -> None:
+    """ACCEPTED and streamed at the rate asked up to its loop rate; DENIED above it."""
+    dialect: Any = load_dialect()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    bridge = mavutil.mavlink_connection(
+        f"udpin:127.0.0.1:{port}", source_system=1, source_component=191, dialect="ardupilotmega"
+    )
+    codec: Any = dialect.MAVLink(bridge, srcSystem=1, srcComponent=191)
+    codec.robust_parsing = True
+
+    def receive(seconds: float) -> list[tuple[float, Any]]:
+        got: list[tuple[float, Any]] = []
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            bridge.select(0.01)
+            if data := bridge.recv(4096):
+                got += [(time.monotonic(), m) for m in codec.parse_buffer(data) or []]
+        return got
+
+    def ask(msg_id: int, rate_hz: float) -> int:
+        codec.send(
+            codec.command_long_encode(
+                1, 1, dialect.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate_hz, 0, 0, 0, 0, 0
+            )
+        )
+        acks = [m for _, m in receive(0.5) if m.get_type() == "COMMAND_ACK"]
+        assert len(acks) == 1 and acks[0].target_component == 191, acks
+        return int(acks[0].result)
+
+    def rate(kind: str) -> float:
+        times = [t for t, m in receive(1.0) if m.get_type() == kind]
+        return (len(times) - 1) / (times[-1] - times[0])
+
+    with SimAutopilot(port) as pilot:
+        receive(0.3)  # its first datagram tells the udpin side where it is
+        assert rate("SERVO_OUTPUT_RAW") == pytest.approx(50, rel=0.2)
+        assert ask(dialect.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, LOOP_HZ * 2) == (
+            dialect.MAV_RESULT_DENIED
+        )
+        assert ask(dialect.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, 200) == dialect.MAV_RESULT_ACCEPTED
+        assert ask(dialect.MAVLINK_MSG_ID_HEARTBEAT, 20) == dialect.MAV_RESULT_ACCEPTED
+        assert ask(dialect.MAVLINK_MSG_ID_ESC_INFO, 1) == dialect.MAV_RESULT_UNSUPPORTED
+        assert (pilot.servo_hz, pilot.heartbeat_hz) == (200, 20)
+        assert rate("SERVO_OUTPUT_RAW") > 150  # a busy machine may hold a send off
+        assert rate("HEARTBEAT") == pytest.approx(20, rel=0.25)
+    bridge.close()
