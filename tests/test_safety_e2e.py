@@ -363,5 +363,8 @@ def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
         end = time.monotonic()
     seen = [t for ts, t in throttles_since(observer, start) if ts <= end]
     assert pilot.largest_gap_ms < 50, "the autopilot itself stalled: not the bridge's fault"
-    assert len(seen) > 8 * 400 * 0.5  # the observer keeps up (it is not real-time)
+    # The observer is a thread of this test, not real-time, and under the flood it reads every
+    # junk frame too: on a machine at load 11 it kept 36 % of the commands. Enough of them to
+    # mean something, spread over the whole run.
+    assert len(seen) > 8 * 400 * 0.1
     assert [t for t in seen if t != HOVER] == []
