@@ -365,6 +365,6 @@ def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
     assert pilot.largest_gap_ms < 50, "the autopilot itself stalled: not the bridge's fault"
     # The observer is a thread of this test, not real-time, and under the flood it reads every
     # junk frame too: on a machine at load 11 it kept 36 % of the commands. Enough of them to
-    # mean something, spread over the whole run.
+    # mean something.
     assert len(seen) > 8 * 400 * 0.1
     assert [t for t in seen if t != HOVER] == []
