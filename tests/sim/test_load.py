@@ -70,13 +70,14 @@ def test_busy_spins_at_its_nice_level_and_leaves_nothing() -> None:
         pgid = load.pgid
         pids = load.pids()
         assert len(pids) == 3  # the supervisor and two spinners
-        # Two spinners on a shared 2-core machine: well over a third of a core each.
-        assert cpu_over(load, 1.0) > 0.6
+        # Two spinners at nice 7 on a 2-core machine that is busy with more (other tests, at
+        # nice 0, take most of it: 0.42 s seen at load 6): they spin, they do not sleep.
+        assert cpu_over(load, 1.0) > 0.2
         assert {int(stat(pid)[16]) for pid in pids} == {7}  # field 19: nice, inherited
     assert_gone(pgid)
     assert load.report is not None
     assert load.report.details["spinners"] == 2
-    assert load.report.cpu_s > 0.6
+    assert load.report.cpu_s > 0.2
 
 
 def test_an_exception_inside_the_context_stops_everything() -> None:
