@@ -31,6 +31,17 @@ were really sent (within ``max_drift`` of how long they waited) and their age sh
   delay at once. A long local gap alone (this process stopped while the autopilot kept
   sending) is not a gap: the packets queued meanwhile have remote times that fill it, and
   re-seeding from the first of them would pass that stale burst as fresh.
+- Pause: the autopilot fell silent and its clock stood still meanwhile (a stopped process
+  whose clock is simulated, as a SITL's is: after SIGSTOP/SIGCONT it goes on from where it
+  stopped), so every later sample has an offset larger by the pause and the estimate, which
+  rises slowly, would judge every input old for a minute. A sample after a silence of more than
+  ``_PAUSE_SILENCE_NS`` whose remote time moved on by less than half of it opens a check: when
+  the next ``_PAUSE_CONFIRM_SAMPLES`` samples arrive in the rhythm the remote clock gives them
+  (remote and local time elapsed agree within a quarter, over at least ``_PAUSE_MIN_SPAN_NS``),
+  the autopilot runs again, and the estimate is re-seeded from their least offset. A backlog
+  released by a frozen link or read late by a stalled process fails the check at once: it
+  arrives faster than its remote times advance. Cost: the first few inputs after a pause are
+  judged old (safe values), ~20 ms at 200 Hz.
 - A remote time of 0 or None (a sender that leaves the field empty): the receive time is all
   there is.
 - A remote time equal to the newest one: once, that is the same instant (SERVO_OUTPUT_RAW ports
@@ -48,8 +59,10 @@ were really sent (within ``max_drift`` of how long they waited) and their age sh
 Limits. The first sample, and the first after a re-seed, is taken as fresh: a backlog read at
 start-up (or a silence longer than ``reset_after_ns`` followed at once by a stall of this
 process) is misjudged until its newer packets arrive; drain the link before trusting it. A
-remote clock that runs slow by more than ``max_drift``, or stands still while we run (a
-paused simulator), makes inputs look older than they are: the safe direction.
+remote clock that runs slow by more than ``max_drift`` makes inputs look older than they are:
+the safe direction. A link that froze and then delivers its backlog exactly as fast as the
+autopilot sends (a saturated link whose queue never drains) looks like a pause and is taken as
+fresh; a link with room drains faster than that and is caught.
 
 Pure: no clock calls; the caller passes the times in (``time.monotonic_ns()`` at receipt).
 """
@@ -68,6 +81,12 @@ _NS_PER_US: Final = 1000
 _RATE_PAIR_MAX_GAP_NS: Final = 100_000_000
 _RATE_WINDOW_NS: Final = 500_000_000
 _MIN_RATE: Final = 0.5
+# The pause check (see "Pause" above).
+_PAUSE_SILENCE_NS: Final = 100_000_000
+_PAUSE_CONFIRM_SAMPLES: Final = 4
+_PAUSE_MIN_SPAN_NS: Final = 15_000_000
+_PAUSE_RATE_TOLERANCE: Final = 0.25
+_PAUSE_SLACK_NS: Final = 2_000_000  # transport jitter between the first and last sample
 
 
 class AutopilotClock:
@@ -107,6 +126,8 @@ class AutopilotClock:
         # together (a stall of ours or a silence of the autopilot in between says nothing).
         self._rate_remote_ns = 0
         self._rate_local_ns = 0
+        # An open pause check: samples, remote and local time elapsed, their least offset.
+        self._pause: list[int] | None = None
         self.not_a_clock = False
         """The remote time runs at under half our rate: it is no µs clock (a counter, a
         frozen simulator), and the receive time is all there is."""
@@ -122,6 +143,7 @@ class AutopilotClock:
         """Forget everything (a new link, another autopilot); the next sample seeds."""
         self._offset_ns = None
         self._repeats = 0
+        self._pause = None
 
     def produced_ns(self, remote_us: int | None, received_ns: int) -> int:
         """The local monotonic time (ns) at which the autopilot produced a message that carries
@@ -142,15 +164,19 @@ class AutopilotClock:
                 self.reseeds += 1
                 return self._seed(remote_us, received_ns)
             local_gap_ns = received_ns - self._newest_received_ns
+            remote_ns = (self._newest_us + step_us) * _NS_PER_US
+            sample = received_ns - remote_ns
+            resumed_offset = self._follow_pause(step_ns, local_gap_ns, sample)
+            if resumed_offset is not None:
+                self.reseeds += 1
+                self._offset_ns = offset = resumed_offset
             if 0 <= local_gap_ns <= _RATE_PAIR_MAX_GAP_NS:
                 self._rate_remote_ns += step_ns
                 self._rate_local_ns += local_gap_ns
                 if self._rate_local_ns >= _RATE_WINDOW_NS:
                     self.not_a_clock = self._rate_remote_ns < self._rate_local_ns * _MIN_RATE
                     self._rate_remote_ns = self._rate_local_ns = 0
-            remote_ns = (self._newest_us + step_us) * _NS_PER_US
             allowed = offset + int(step_ns * self._max_drift)
-            sample = received_ns - remote_ns
             self._offset_ns = sample if sample < allowed else allowed
             self._newest_raw_us = remote_us
             self._newest_us += step_us
@@ -174,10 +200,37 @@ class AutopilotClock:
             self._offset_ns = offset = sample
         return remote_ns + offset
 
+    def _follow_pause(self, step_ns: int, local_gap_ns: int, sample_ns: int) -> int | None:
+        """Open, advance or close the pause check with a sample ``step_ns`` of remote and
+        ``local_gap_ns`` of local time after the newest, of offset ``sample_ns``; the offset to
+        re-seed from when the autopilot was paused and runs again, else None."""
+        if local_gap_ns > _PAUSE_SILENCE_NS and 2 * step_ns < local_gap_ns:
+            self._pause = [0, 0, 0, sample_ns]  # silent, and its clock stood still meanwhile
+            return None
+        check = self._pause
+        if check is None:
+            return None
+        if local_gap_ns > _RATE_PAIR_MAX_GAP_NS:
+            self._pause = None  # another silence: no rhythm to judge
+            return None
+        check[0] += 1
+        check[1] += step_ns
+        check[2] += local_gap_ns
+        check[3] = min(check[3], sample_ns)
+        remote_span, local_span = check[1], check[2]
+        if abs(remote_span - local_span) > _PAUSE_RATE_TOLERANCE * local_span + _PAUSE_SLACK_NS:
+            self._pause = None  # a backlog (or no clock): its times run ahead of its arrival
+            return None
+        if check[0] < _PAUSE_CONFIRM_SAMPLES or local_span < _PAUSE_MIN_SPAN_NS:
+            return None
+        self._pause = None
+        return check[3]
+
     def _seed(self, remote_us: int, received_ns: int) -> int:
         self._offset_ns = received_ns - remote_us * _NS_PER_US
         self._newest_raw_us = remote_us
         self._newest_us = remote_us
         self._newest_received_ns = received_ns
         self._repeats = 0
+        self._pause = None
         return received_ns

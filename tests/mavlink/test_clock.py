@@ -357,3 +357,62 @@ def test_a_real_clock_through_a_stall_and_a_silence_stays_a_clock() -> None:
     burst = [clock.produced_ns((400 + k) * 2500 + 1, read_at) for k in range(120)]
     assert not clock.not_a_clock
     assert read_at - burst[-1] > 2_500_000_000  # the newest queued input is known to be old
+
+
+def paused_stream(
+    rate_hz: float, pause_at_s: float, pause_s: float, end_s: float, delay_ns: int = 300_000
+) -> list[Packet]:
+    """An autopilot whose process (and clock: a SITL's is simulated) stops for ``pause_s`` at
+    ``pause_at_s``: nothing is sent meanwhile, and its clock goes on from where it stopped."""
+    period_ns = round(S / rate_hz)
+    packets = []
+    paused_ns = 0
+    sent = LOCAL_START_NS
+    while sent < LOCAL_START_NS + end_s * S:
+        if paused_ns == 0 and sent >= LOCAL_START_NS + pause_at_s * S:
+            paused_ns = round(pause_s * S)
+            sent += paused_ns
+        remote_us = 60_000_000 + (sent - LOCAL_START_NS - paused_ns) // 1000
+        packets.append(Packet(sent, remote_us, sent + delay_ns, stalled=False))
+        sent += period_ns
+    return packets
+
+
+@pytest.mark.parametrize("rate_hz", [200, 50])
+def test_an_autopilot_paused_with_its_clock_runs_again_within_a_few_inputs(
+    rate_hz: float,
+) -> None:
+    """SIGSTOP/SIGCONT of a SITL: its time_usec stands still while it is stopped. Judged by the
+    old estimate every input after it would look a second old (safe values for a minute)."""
+    packets = paused_stream(rate_hz, pause_at_s=2.0, pause_s=1.0, end_s=4.0)
+    clock = AutopilotClock(32)
+
+    produced = run(clock, packets)
+
+    resumed = next(i for i, p in enumerate(packets) if p.sent_ns >= LOCAL_START_NS + 3 * S)
+    ages_ms = [(p.read_ns - t) / MS for p, t in zip(packets, produced, strict=True)]
+    first_fresh = next(i for i in range(resumed, len(packets)) if ages_ms[i] < 5)
+    # Judged old (safe values) until the rhythm confirms the pause: about 15 ms of inputs.
+    assert all(age > 900 for age in ages_ms[resumed:first_fresh])
+    assert first_fresh - resumed <= max(5, 15 * MS * rate_hz // S + 2)
+    assert all(age < 5 for age in ages_ms[first_fresh:])
+    assert clock.reseeds == 1
+
+
+def test_a_frozen_link_that_releases_its_backlog_faster_than_sent_is_not_a_pause() -> None:
+    """A link that froze for 1 s and then delivers the queue at twice the send rate: the remote
+    times run ahead of the arrivals, so the queued inputs stay old until the live ones come."""
+    period_ns = 5 * MS
+    clock = AutopilotClock(32)
+    for k in range(400):  # 2 s at 200 Hz
+        clock.produced_ns(60_000_000 + k * 5000, LOCAL_START_NS + k * period_ns + 300_000)
+    frozen_at = LOCAL_START_NS + 400 * period_ns
+    released_at = frozen_at + S
+    ages = []
+    for k in range(400, 800):  # sent through the freeze and after, read at twice the rate
+        sent = LOCAL_START_NS + k * period_ns
+        read = max(sent + 300_000, released_at + (k - 400) * period_ns // 2)
+        ages.append(read - clock.produced_ns(60_000_000 + k * 5000, read))
+    assert min(ages[:100]) > 400 * MS  # the backlog is known to be old
+    assert ages[-1] < 2 * MS  # once the queue is drained, live inputs are fresh
+    assert clock.reseeds == 0
