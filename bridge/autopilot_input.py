@@ -105,6 +105,10 @@ class AutopilotInput:
             else None
         )
         self._transport: AutopilotTransport | None = None
+        # What the autopilot said before it restarted, or before the link was reopened, is
+        # forgotten: its arming state above all (a new boot is disarmed until it says so).
+        self._reboots_seen = 0
+        self._reconnects_seen = 0
         self._inputs_seen: list[float] | None = None  # the newest input vector, for reports
         self.fractions: list[float] | None = None
         """The mix of the newest input; None while there is none or it is invalid."""
@@ -141,7 +145,11 @@ class AutopilotInput:
         transport = self._transport
         if transport is not None:
             transport.service(now_ns)
-            self._counters[self._i_reconnects] = transport.stats.reconnects
+            reconnects = transport.stats.reconnects
+            if reconnects != self._reconnects_seen:
+                self._reconnects_seen = reconnects
+                self._counters[self._i_reconnects] = reconnects
+                self._forget_autopilot(now_ns)
 
     def on_readable(self, now_ns: int) -> bool:
         """Read what is waiting; True when a new input was acted on."""
@@ -228,6 +236,9 @@ class AutopilotInput:
         if decoded.armed is not None:
             self._set_armed(decoded.armed, received_ns)
         produced_ns = self._clock.produced_ns(decoded.time_us, received_ns)
+        if self._clock.reboots != self._reboots_seen:
+            self._reboots_seen = self._clock.reboots
+            self._set_armed(False, received_ns)  # a new boot: disarmed until its HEARTBEAT
         if inputs.have_input and produced_ns < inputs.input_produced_ns:
             counters[self._i_order] += 1  # overtaken on the way: the newer one stands
             return False
@@ -249,6 +260,14 @@ class AutopilotInput:
         self._inputs_seen = values
         self._snapshot.write(produced_ns, fractions, inputs.armed, inputs.armed_heard_ns, values)
         return True
+
+    def _forget_autopilot(self, now_ns: int) -> None:
+        """The link was reopened: whoever answers now starts afresh (disarmed until its own
+        HEARTBEAT says otherwise, its clock and its outputs unknown)."""
+        self._decoder.reset()
+        self._clock.reset()
+        if self._inputs.armed:
+            self._set_armed(False, now_ns)
 
     def _set_armed(self, armed: bool, heard_ns: int) -> None:
         inputs = self._inputs

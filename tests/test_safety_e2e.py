@@ -340,6 +340,40 @@ def test_out_of_range_floats_on_a_float_source_are_invalid(
     assert after and all(t == SAFE for t in after)
 
 
+def test_an_autopilot_that_rebooted_is_disarmed_until_its_own_heartbeat_says_otherwise(
+    start_daemon: Callable[..., Daemon], mavlink_port: int, observer: Observer
+) -> None:
+    """The arming state heard before a restart is not the new boot's: outputs from a clock
+    that started again (PX4 restarted while its last HEARTBEAT said armed) move no motor."""
+    start_daemon()
+    conn = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{mavlink_port}", source_system=1, source_component=1
+    )
+    mav = conn.mav
+    armed = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED | 1
+
+    def servo(time_us: int) -> None:
+        mav.servo_output_raw_send(time_us, 0, *([1500] * 4 + [0] * 4))
+
+    try:
+        booted = time.monotonic()
+        deadline = booted + ARM_TIMEOUT_S
+        while not any(t == HOVER for _, t in throttles_since(observer, 0)):
+            assert time.monotonic() < deadline, "never armed"
+            mav.heartbeat_send(2, 3, armed, 0, 4)
+            for _ in range(5):
+                servo(600_000_000 + int((time.monotonic() - booted) * 1e6))
+                time.sleep(0.01)
+        rebooted = time.monotonic()
+        for _ in range(100):  # a second of outputs from a fresh boot, no HEARTBEAT yet
+            servo(2_000_000 + int((time.monotonic() - rebooted) * 1e6))
+            time.sleep(0.01)
+    finally:
+        conn.close()
+    after = [t for _, t in throttles_since(observer, rebooted + 0.05)]
+    assert len(after) > 200 and set(after) == {SAFE}
+
+
 # -- under load -------------------------------------------------------------------------------
 
 

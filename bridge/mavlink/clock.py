@@ -132,7 +132,9 @@ class AutopilotClock:
         """The remote time runs at under half our rate: it is no µs clock (a counter, a
         frozen simulator), and the receive time is all there is."""
         self.reseeds = 0
-        """Times the estimate was re-seeded by a reboot or a gap (not counting the first)."""
+        """Times the estimate was re-seeded by a reboot, a gap or a pause (not the first)."""
+        self.reboots = 0
+        """Times the remote clock stepped back by more than 1 s: the autopilot restarted."""
 
     @property
     def offset_ns(self) -> int | None:
@@ -192,6 +194,7 @@ class AutopilotClock:
             return min(received_ns, self._newest_us * _NS_PER_US + offset)
         if step_us < -_REBOOT_STEP_US:
             self.reseeds += 1
+            self.reboots += 1
             return self._seed(remote_us, received_ns)
         # A reordered packet: older than the newest one. Its offset still bounds the estimate.
         remote_ns = (self._newest_us + step_us) * _NS_PER_US
