@@ -56,10 +56,12 @@ __all__ = [
     "Family",
     "MavlinkTelemetry",
     "TelemetryStats",
+    "bytes_per_s",
     "describe_sets",
     "esc_info_messages",
     "esc_status_messages",
     "esc_telemetry_messages",
+    "messages_per_round",
 ]
 
 log = logging.getLogger(__name__)
@@ -278,20 +280,50 @@ _NAMES: Final[dict[Family, str]] = {
 }
 
 
-def describe_sets(config: MavlinkConfig) -> str:
-    """What each connection carries by default, one line (for ``run --check``)."""
+FRAME_OVERHEAD: Final = 12
+"""A MAVLink 2 frame's bytes besides its payload: 10 of header, 2 of checksum."""
+SIGNATURE_BYTES: Final = 13
+"""What signing adds to each frame: link ID, 6-byte timestamp, 6-byte signature."""
+PAYLOAD_BYTES: Final[dict[Family, int]] = {"esc_status": 57, "esc_info": 46, "esc_telemetry": 44}
+"""Each family's full payload. MAVLink 2 drops trailing zero bytes, so a frame is at most
+this plus :data:`FRAME_OVERHEAD`; with live ESCs it is that long."""
+
+
+def messages_per_round(family: Family, n_escs: int) -> int:
+    """How many messages one round of ``family`` is for ``n_escs`` ESCs (batches of four)."""
+    limit = ESC_TELEMETRY_MAX_ESCS if family == "esc_telemetry" else MAX_ESCS
+    return -(-min(n_escs, limit) // ESCS_PER_MESSAGE)
+
+
+def bytes_per_s(rates: dict[Family, float], n_escs: int, signed: bool = False) -> float:
+    """The most bytes per second a message set sends for ``n_escs`` ESCs (every frame full)."""
+    extra = FRAME_OVERHEAD + (SIGNATURE_BYTES if signed else 0)
+    return sum(
+        rate * messages_per_round(family, n_escs) * (PAYLOAD_BYTES[family] + extra)
+        for family, rate in rates.items()
+    )
+
+
+def describe_sets(config: MavlinkConfig, n_escs: int) -> str:
+    """What each connection carries by default and its bytes per second for ``n_escs`` ESCs,
+    one line (for ``run --check``)."""
+    signed = config.signing_key is not None
+
+    def text(rates: dict[Family, float]) -> str:
+        load = bytes_per_s(rates, n_escs, signed)
+        return f"{_rates_text(rates)} ({load:.0f} B/s)" if load else _rates_text(rates)
+
     if config.autopilot_messages is not None:
-        autopilot = _rates_text(_as_rates(config.autopilot_messages))
+        autopilot = text(_as_rates(config.autopilot_messages))
     else:
         autopilot = (
-            f"by its HEARTBEAT: ArduPilot {_rates_text(AUTOPILOT_SETS[3])}; "
-            f"PX4 {_rates_text(AUTOPILOT_SETS[12])}; "
-            f"other {_rates_text(OTHER_AUTOPILOT_SET)}"
+            f"by its HEARTBEAT: ArduPilot {text(AUTOPILOT_SETS[MAV_AUTOPILOT_ARDUPILOTMEGA])}; "
+            f"PX4 {text(AUTOPILOT_SETS[MAV_AUTOPILOT_PX4])}; other {text(OTHER_AUTOPILOT_SET)}"
         )
     parts = [f"autopilot link {autopilot}"]
     for url in config.outputs:
-        parts.append(f"{url} {_rates_text(_as_rates(config.output_rates(url)))}")
-    return "MAVLink ESC telemetry: " + "; ".join(parts)
+        parts.append(f"{url} {text(_as_rates(config.output_rates(url)))}")
+    return f"MAVLink ESC telemetry for {n_escs} ESCs: " + "; ".join(parts)
 
 
 def _as_rates(table: Any) -> dict[Family, float]:

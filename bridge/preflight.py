@@ -141,7 +141,7 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
     passed += [
         valid_text,
         _describe_commands(config),
-        describe_sets(config.mavlink),
+        describe_sets(config.mavlink, len(config.escs.ids)),
         _check_dialect(),
     ]
     directory = None
