@@ -28,7 +28,7 @@ from pymavlink import mavutil
 
 from bridge.escs import ckesc
 from bridge.mavlink import load_dialect
-from bridge.mavlink_out import AUTOPILOT_SETS, OTHER_AUTOPILOT_SET, bytes_per_s
+from bridge.mavlink_out import AUTOPILOT_SETS, OTHER_AUTOPILOT_SET, Family, bytes_per_s
 
 dialect = load_dialect()
 ARDUPILOT = dialect.MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -136,7 +136,7 @@ def measure(rx: MavlinkReceiver, since: float, until: float) -> tuple[dict[str, 
     return rates, size / (until - since)
 
 
-def assert_rates(where: str, rates: dict[str, float], expected: dict[str, float]) -> None:
+def assert_rates(where: str, rates: dict[str, float], expected: dict[Family, float]) -> None:
     print(where, {kind: round(hz, 2) for kind, hz in sorted(rates.items())})  # with -s
     for family, hz in expected.items():
         for kind in FAMILY_KINDS[family]:
@@ -159,7 +159,7 @@ def wait_and_measure(*receivers: MavlinkReceiver) -> list[tuple[dict[str, float]
     return [measure(rx, since, time.monotonic()) for rx in receivers]
 
 
-GCS_DEFAULT = {"esc_status": 10.0, "esc_info": 1.0, "esc_telemetry": 10.0}
+GCS_DEFAULT: dict[Family, float] = {"esc_status": 10.0, "esc_info": 1.0, "esc_telemetry": 10.0}
 
 
 @pytest.mark.parametrize(
@@ -361,7 +361,7 @@ def test_check_shows_each_links_set_and_load(tmp_path: Path) -> None:
 def test_the_payload_sizes_are_the_dialects() -> None:
     mav = dialect.MAVLink(None, srcSystem=1, srcComponent=191)
     ones = [1, 1, 1, 1]
-    full = {
+    full: dict[Family, Any] = {
         "esc_status": mav.esc_status_encode(1, 1, ones, [1.0] * 4, [1.0] * 4),
         "esc_info": mav.esc_info_encode(1, 1, 1, 1, 1, 1, ones, ones, ones),
         "esc_telemetry": mav.esc_telemetry_1_to_4_encode(ones, ones, ones, ones, ones, ones),
