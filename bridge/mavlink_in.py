@@ -35,7 +35,8 @@ named the bridge exactly (system and component); broadcasts nobody claims get no
 
 Every frame is packed once: one sequence number and one signature serve all connections, so a
 recording (``tlog``) holds exactly the bytes on the wire. A COMMAND_ACK or a stream request goes
-to one connection only, which the others see as a skipped sequence number.
+to one connection only, and a message sent with ``to`` (the ESC telemetry of one connection's
+message set) to those named, which the others see as a skipped sequence number.
 
 Encoding and decoding use the project's MAVLink 2 dialect module, ardupilotmega plus ESC_INFO
 and ESC_STATUS (:func:`bridge.mavlink.load_dialect`), directly rather than the one ``mavutil``

@@ -3,10 +3,17 @@
 Pure encoders first: ESC snapshots in, pymavlink message objects out (no clock, socket or
 lock), every value clamped to its field's range and NaN/None turned into the field's "unknown".
 Then :class:`MavlinkTelemetry`, a named daemon thread that sends each of the three message
-families at its own rate through :meth:`MavlinkLink.send` and lets a ground station change those
-rates (MAV_CMD_SET_MESSAGE_INTERVAL), ask for one message now (MAV_CMD_REQUEST_MESSAGE) or read
-a rate (MAV_CMD_GET_MESSAGE_INTERVAL). It reads only :class:`EscTable` snapshots and touches
-nothing of the output loop, so it can never slow a motor command down.
+families at its own rate on each connection of the :class:`MavlinkLink` (``MavlinkLink.send``
+with ``to``) and lets a ground station change a rate on the connection it speaks on
+(MAV_CMD_SET_MESSAGE_INTERVAL), ask for one message now (MAV_CMD_REQUEST_MESSAGE) or read a rate
+(MAV_CMD_GET_MESSAGE_INTERVAL). It reads only :class:`EscTable` snapshots and touches nothing of
+the output loop, so it can never slow a motor command down.
+
+Which messages go where: the autopilot's connection carries only what its flight stack forwards
+to its ground stations, slowly (:data:`AUTOPILOT_SETS`, chosen from the ``autopilot`` field of
+its HEARTBEAT: ArduPilot drops ESC_INFO/ESC_STATUS, which its MAVLink lacks; PX4 forwards those
+but not ESC_TELEMETRY_x_TO_y), unless ``[mavlink] autopilot_messages`` says otherwise; each
+output (a ground station) gets all three at ``esc_*_hz``, or its ``output_messages`` entry.
 
 Encoding choices the MAVLink definitions leave open (README, "ESC telemetry over MAVLink"):
 
@@ -27,8 +34,9 @@ Encoding choices the MAVLink definitions leave open (README, "ESC telemetry over
 * Intervals shorter than :data:`MIN_INTERVAL_US` (faster than 100 Hz) are refused with
   MAV_RESULT_DENIED; an interval of 0 restores the configured rate, -1 turns the family off,
   any other negative value is DENIED. Setting the interval of any ESC_TELEMETRY_x_TO_y sets the
-  rate of all of them (one family). MAV_CMD_REQUEST_MESSAGE for an ESC_TELEMETRY_x_TO_y sends
-  only that batch, and is DENIED when no configured ESC falls into it.
+  rate of all of them (one family). A rate is set on the connection the command came in on.
+  MAV_CMD_REQUEST_MESSAGE for an ESC_TELEMETRY_x_TO_y sends only that batch, and is DENIED when
+  no configured ESC falls into it.
 """
 
 from __future__ import annotations
