@@ -740,9 +740,9 @@ def test_check_prints_each_check_and_opens_nothing(
         "  valid range [800, 2200] contains the input range [1000, 2000]",
         "  arming state older than 3000 ms counts as disarmed; motor test on, from system IDs 1, "
         "255",
-        "  MAVLink ESC telemetry: autopilot link by its HEARTBEAT: ArduPilot ESC_TELEMETRY 2 Hz; "
-        "PX4 ESC_STATUS 2 Hz, ESC_INFO 1 Hz; other ESC_STATUS 2 Hz, ESC_INFO 1 Hz, "
-        "ESC_TELEMETRY 2 Hz",
+        "  MAVLink ESC telemetry for 4 ESCs: autopilot link by its HEARTBEAT: ArduPilot "
+        "ESC_TELEMETRY 2 Hz (112 B/s); PX4 ESC_STATUS 2 Hz, ESC_INFO 1 Hz (196 B/s); other "
+        "ESC_STATUS 2 Hz, ESC_INFO 1 Hz, ESC_TELEMETRY 2 Hz (308 B/s)",
         lines[8],
     ]
     assert lines[8].startswith("  MAVLink dialect loads (") and lines[8].endswith(".py)")
