@@ -531,6 +531,7 @@ class MavlinkTelemetry:
     def _run(self) -> None:
         next_due: dict[tuple[str, Family], int] = {}
         last_rates: dict[tuple[str, Family], float] = {}
+        epoch = time.monotonic_ns()
         while not self._stop.is_set():
             self._wake.clear()  # before reading the state, so no later change is missed
             rates = self._rates()
@@ -552,10 +553,14 @@ class MavlinkTelemetry:
                     if self.stats.errors & (self.stats.errors - 1) == 0:
                         log.exception("ESC telemetry round failed (%d so far)", self.stats.errors)
             for slot in due:
+                # The next tick of the slot's grid, counted from the sender's start: a family
+                # at the same or a multiple rate on several connections is then due at the same
+                # instants (one frame, one ESC_INFO round for all). A tick less than half a
+                # period away (after a new rate's first message, or a stall) is skipped: no
+                # burst.
                 period_ns = round(1e9 / rates[slot])
-                next_due[slot] += period_ns
-                if next_due[slot] <= now:  # fell behind (a stall): skip, do not burst
-                    next_due[slot] = now + period_ns
+                tick = epoch + ((now - epoch) // period_ns + 1) * period_ns
+                next_due[slot] = tick if tick - now >= period_ns // 2 else tick + period_ns
             enabled = [next_due[s] for s, rate in rates.items() if rate > 0]
             wait_ns = min(enabled) - time.monotonic_ns() if enabled else _IDLE_WAIT_S * 1e9
             self._wake.wait(max(0.0, min(wait_ns / 1e9, _IDLE_WAIT_S)))

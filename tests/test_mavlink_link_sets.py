@@ -136,6 +136,12 @@ def measure(rx: MavlinkReceiver, since: float, until: float) -> tuple[dict[str, 
     return rates, size / (until - since)
 
 
+def esc_frames(rx: MavlinkReceiver) -> list[tuple[float, bytes]]:
+    """Every ESC telemetry frame received, as on the wire, with its arrival time."""
+    with rx._lock:
+        return [(t, bytes(m.get_msgbuf())) for t, m in rx.messages if m.get_type() in ESC_KINDS]
+
+
 def assert_rates(where: str, rates: dict[str, float], expected: dict[Family, float]) -> None:
     print(where, {kind: round(hz, 2) for kind, hz in sorted(rates.items())})  # with -s
     for family, hz in expected.items():
@@ -179,9 +185,19 @@ def test_the_default_sets_by_the_autopilots_heartbeat(
         daemon = start(tmp_path, start_daemon, f'outputs = ["{gcs.url}"]\n')
         autopilot.start_stream(20)
         (pilot_rates, pilot_bytes), (gcs_rates, _) = wait_and_measure(pilot_rx, gcs.rx)
+        # A family due on both links at once is one frame for both (the same sequence number,
+        # the same ESC_INFO round): every one the autopilot got, the ground station got too
+        # (the schedules share one grid, and the ground station's rates are multiples).
+        sent_to_pilot = esc_frames(pilot_rx)
+        sent_to_gcs = {frame for _, frame in esc_frames(gcs.rx)}
     finally:
         pilot_rx.close()
         autopilot.close()
+    # The set's first messages go out at once when the HEARTBEAT chooses it, off the grid.
+    first = sent_to_pilot[0][0]
+    later = [frame for t, frame in sent_to_pilot if t > first + 0.5]
+    assert later
+    assert sum(frame not in sent_to_gcs for frame in later) == 0
     expected = AUTOPILOT_SETS.get(stack, OTHER_AUTOPILOT_SET)
     assert_rates("autopilot link", pilot_rates, expected)
     assert_rates("ground station", gcs_rates, GCS_DEFAULT)
