@@ -358,7 +358,9 @@ def _daemon_config(path: Path, n_escs: int, esc_status_hz: float, zenoh: bool) -
     )
     config = path / f"bench-{esc_status_hz:g}.toml"
     config.write_text(
-        f"[mavlink]\nstream_rate_hz = 0\nesc_status_hz = {esc_status_hz}\n"
+        # The autopilot link carries every family, as a ground station's would.
+        f"[mavlink]\nstream_rate_hz = 0\nautopilot_messages = {{ esc_status = {esc_status_hz}, "
+        "esc_info = 1, esc_telemetry = 10 }\n"
         f'[mixer]\nname = "{mixer}"\n'
         f'[output]\nrate_hz = {OUTPUT_RATE_HZ}\nlatency = "fixed"\n'
         # The virtual bus has no bit rate; the telemetry here is far above CKESC's factory rates.

@@ -204,6 +204,35 @@ def _choice_int(*choices: int) -> Callable[[Any], str | None]:
     )
 
 
+MESSAGE_FAMILIES = ("esc_status", "esc_info", "esc_telemetry")
+"""The ESC telemetry families a MAVLink connection can carry (``bridge.mavlink_out``)."""
+MAX_MESSAGE_HZ = 100.0
+_MESSAGE_SET = "a table of esc_status, esc_info, esc_telemetry = rate in Hz 0..100 (0 = off)"
+
+
+def _message_set(v: Any) -> str | None:
+    """A connection's message set: ``{family = Hz}``; a family not listed is off."""
+    if not isinstance(v, dict):
+        return _MESSAGE_SET
+    for family, rate in v.items():
+        if family not in MESSAGE_FAMILIES:
+            return f"{_MESSAGE_SET}; {family!r} is no message family"
+        if not (_is_number(rate) and 0 <= rate <= MAX_MESSAGE_HZ):
+            return f"{_MESSAGE_SET}; {family} = {_shown(rate)} is no rate 0..100"
+    return None
+
+
+def _output_message_sets(v: Any) -> str | None:
+    what = 'a table of "output URL" = { esc_status = Hz, esc_info = Hz, esc_telemetry = Hz }'
+    if not isinstance(v, dict):
+        return what
+    for url, rates in v.items():
+        problem = _message_set(rates)
+        if problem is not None:
+            return f"{what}; for {url!r}: {problem}"
+    return None
+
+
 def key(default: Any, check: Callable[[Any], str | None], doc: str) -> Any:
     """A config key: its default, its validator (returns what was expected, or None) and doc."""
     return field(default=default, metadata={"check": check, "doc": doc})
@@ -256,11 +285,43 @@ class MavlinkConfig:
         "extra MAVLink connections (e.g. udpout:192.168.1.10:14550 to a GCS) that get the "
         "bridge's HEARTBEAT, STATUSTEXT and ESC telemetry",
     )
-    esc_status_hz: float = key(10.0, _float_range(0, 100), "ESC_STATUS rate; 0 = off")
-    esc_info_hz: float = key(1.0, _float_range(0, 100), "ESC_INFO rate; 0 = off")
-    esc_telemetry_hz: float = key(
-        10.0, _float_range(0, 100), "ArduPilot ESC_TELEMETRY_x_TO_y rate; 0 = off"
+    esc_status_hz: float = key(
+        10.0, _float_range(0, 100), "ESC_STATUS rate on each output (ground station); 0 = off"
     )
+    esc_info_hz: float = key(
+        1.0, _float_range(0, 100), "ESC_INFO rate on each output (ground station); 0 = off"
+    )
+    esc_telemetry_hz: float = key(
+        10.0,
+        _float_range(0, 100),
+        "ArduPilot ESC_TELEMETRY_x_TO_y rate on each output (ground station); 0 = off",
+    )
+    autopilot_messages: Mapping[str, float] | None = key(
+        None,
+        _optional(_message_set),
+        "ESC telemetry on the autopilot's link, e.g. { esc_telemetry = 2 } (Hz; a family not "
+        "listed is off); default: chosen from the autopilot's HEARTBEAT (ArduPilot "
+        "ESC_TELEMETRY_x_TO_y 2 Hz, PX4 ESC_STATUS 2 Hz and ESC_INFO 1 Hz, another stack all "
+        "three, nothing before its first HEARTBEAT)",
+    )
+    output_messages: Mapping[str, Mapping[str, float]] | None = key(
+        None,
+        _optional(_output_message_sets),
+        "ESC telemetry on particular outputs, by URL as in outputs, e.g. "
+        '{ "udpout:10.0.0.2:14550" = { esc_status = 5 } } (Hz; a family not listed is off); '
+        "outputs not named get esc_status_hz, esc_info_hz and esc_telemetry_hz",
+    )
+
+    def output_rates(self, url: str) -> dict[str, float]:
+        """The rates (Hz, 0 = off) of every family on the output ``url``."""
+        configured = (self.output_messages or {}).get(url)
+        if configured is not None:
+            return {family: float(configured.get(family, 0.0)) for family in MESSAGE_FAMILIES}
+        return {
+            "esc_status": self.esc_status_hz,
+            "esc_info": self.esc_info_hz,
+            "esc_telemetry": self.esc_telemetry_hz,
+        }
 
 
 @dataclass(frozen=True)
@@ -630,6 +691,13 @@ def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: 
 
 def _check_cross_section(config: BridgeConfig) -> None:
     escs, source = config.escs, config.source
+    for url in config.mavlink.output_messages or {}:
+        if url not in config.mavlink.outputs:
+            listed = ", ".join(repr(u) for u in config.mavlink.outputs) or "none"
+            raise ConfigError(
+                f"{source}: [mavlink] output_messages: {url!r} is not one of [mavlink] outputs "
+                f"({listed}); expected an output URL written exactly as in outputs"
+            )
     if escs.ckesc_channels and escs.ids and len(escs.ckesc_channels) != len(escs.ids):
         raise ConfigError(
             f"{source}: [escs] ckesc_channels has {len(escs.ckesc_channels)} entries but ids "

@@ -35,7 +35,8 @@ named the bridge exactly (system and component); broadcasts nobody claims get no
 
 Every frame is packed once: one sequence number and one signature serve all connections, so a
 recording (``tlog``) holds exactly the bytes on the wire. A COMMAND_ACK or a stream request goes
-to one connection only, which the others see as a skipped sequence number.
+to one connection only, and a message sent with ``to`` (the ESC telemetry of one connection's
+message set) to those named, which the others see as a skipped sequence number.
 
 Encoding and decoding use the project's MAVLink 2 dialect module, ardupilotmega plus ESC_INFO
 and ESC_STATUS (:func:`bridge.mavlink.load_dialect`), directly rather than the one ``mavutil``
@@ -64,7 +65,7 @@ import struct
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from types import ModuleType, TracebackType
 from typing import Any, BinaryIO, Final, Protocol
@@ -105,6 +106,10 @@ log = logging.getLogger(__name__)
 
 CommandHandler = Callable[[Any], int | None]
 """Takes a COMMAND_LONG addressed to the bridge; returns a MAV_RESULT, or None: not mine."""
+
+COMMAND_ORIGIN: Final = "bridge_connection"
+"""The attribute a COMMAND_LONG carries while the handlers see it: the URL (as configured) of
+the connection it came in on, for :meth:`MavlinkLink.send`'s ``to``."""
 
 INPUT_VECTOR_LEN: Final = len(INPUT_NAMES)
 """36: ``ch1..ch32``, then ``roll, pitch, yaw, thrust`` (the order of ``INPUT_NAMES``)."""
@@ -411,6 +416,7 @@ class MavlinkLink:
         self._asked_hz: dict[str, float] = {}  # the rate last asked, per message: log changes
         self._heartbeats = 0  # the autopilot's HEARTBEATs, for their arriving rate
         self._heartbeats_checked = (0, 0)  # (count, monotonic ns) at the previous check
+        self._autopilot_type: int | None = None
 
     # -- public API ------------------------------------------------------------------------
 
@@ -423,6 +429,12 @@ class MavlinkLink:
     def dialect(self) -> ModuleType:
         """The dialect module the link speaks (its constants: ``MAV_RESULT_*``, message IDs)."""
         return self._dialect
+
+    @property
+    def autopilot_type(self) -> int | None:
+        """The obeyed autopilot's flight stack (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4) from its
+        latest HEARTBEAT; None before the first."""
+        return self._autopilot_type
 
     def add_command_handler(self, handler: CommandHandler) -> None:
         """Pass COMMAND_LONGs addressed to the bridge to ``handler`` too, after the handlers
@@ -506,8 +518,10 @@ class MavlinkLink:
             thread.daemon = True  # a stuck link must not keep the process alive
             thread.start()
 
-    def send(self, msg: Any) -> None:
-        """Send a pymavlink message object to the autopilot and every output, from any thread.
+    def send(self, msg: Any, to: Collection[str] | None = None) -> None:
+        """Send a pymavlink message object to the autopilot and every output, from any thread;
+        with ``to``, only to the connections whose URL (``url`` or an ``outputs`` entry, as
+        configured) it holds (the others see a skipped sequence number).
 
         Never raises for link trouble: a connection that is down (or closed) or whose write
         fails drops the frame and counts it in its ``send_failures`` (MAVLink is lossy anyway).
@@ -517,8 +531,11 @@ class MavlinkLink:
             if not self._connections:  # not started
                 self.stats.send_failures += 1
                 return
+            connections = [c for c in self._connections if to is None or c.url in to]
+            if not connections:
+                return
             frame = self._pack(msg)
-            for connection in self._connections:
+            for connection in connections:
                 self._deliver(connection, frame)
 
     def statustext(self, severity: int, text: str) -> None:
@@ -876,6 +893,7 @@ class MavlinkLink:
         if not is_output:
             self.stats.last_heartbeat_ns = now
             self._heartbeats += 1
+            self._autopilot_type = msg.autopilot
             self._decoder.identify(msg.autopilot)
             if self._sink is not None:
                 self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
@@ -897,6 +915,7 @@ class MavlinkLink:
             return
         self.stats.commands += 1
         named_us = target == ours
+        setattr(msg, COMMAND_ORIGIN, connection.url)
         result: int | None = None
         failed = False
         for handler in self._command_handlers:

@@ -40,6 +40,7 @@ from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
 from bridge.mavlink_in import Endpoint, check_endpoints
+from bridge.mavlink_out import describe_sets
 from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition, load_mixer
 from bridge.zenoh_out import session_config
 
@@ -137,7 +138,12 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
         _check_inputs(config, definition),
     ]
     valid_range, valid_text = _check_valid_range(config, definition, input_range)
-    passed += [valid_text, _describe_commands(config), _check_dialect()]
+    passed += [
+        valid_text,
+        _describe_commands(config),
+        describe_sets(config.mavlink, len(config.escs.ids)),
+        _check_dialect(),
+    ]
     directory = None
     if record_dir:  # as the daemon reads it: an empty --record means no recording
         directory = Path(record_dir)

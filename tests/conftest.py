@@ -100,7 +100,14 @@ class Observer:
 class Autopilot:
     """A pymavlink sender playing the autopilot: HEARTBEAT and motor outputs, on loopback."""
 
-    def __init__(self, port: int, system: int = 1, component: int = 1) -> None:
+    def __init__(
+        self,
+        port: int,
+        system: int = 1,
+        component: int = 1,
+        stack: int = mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+    ) -> None:
+        self.stack = stack  # its HEARTBEAT's autopilot field (MAV_AUTOPILOT)
         self.conn: Any = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{port}", source_system=system, source_component=component
         )
@@ -117,7 +124,7 @@ class Autopilot:
             base_mode |= mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         self.mav.heartbeat_send(
             mavutil.mavlink.MAV_TYPE_QUADROTOR,
-            mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            self.stack,
             base_mode,
             0,
             mavutil.mavlink.MAV_STATE_ACTIVE,

@@ -234,6 +234,10 @@ def make_bridge() -> Iterator[MakeBridge]:
             gcs = Gcs()
             closers.append(gcs.close)
         settings: dict[str, Any] = {"url": gcs.url, "stream_rate_hz": 0.0} | config
+        if "autopilot_messages" not in settings:
+            # The GCS plays the autopilot's link here: give it the output rates (the per-link
+            # sets are tested in test_mavlink_link_sets.py).
+            settings["autopilot_messages"] = MavlinkConfig(**settings).output_rates("")
         mavlink = MavlinkConfig(**settings)
         link = MavlinkLink(mavlink, NullSink())
         closers.append(link.close)
@@ -600,7 +604,8 @@ def test_an_extra_output_gets_heartbeat_and_telemetry_and_may_command(
 
         since = gcs.command(DIALECT.MAV_CMD_SET_MESSAGE_INTERVAL, 290, -1)
         assert gcs.ack(DIALECT.MAV_CMD_SET_MESSAGE_INTERVAL, since).result == 0
-        assert bridge.telemetry.rate_hz("esc_info") == 0.0
+        assert bridge.telemetry.rate_hz("esc_info", gcs.url) == 0.0  # on its own link only
+        assert bridge.telemetry.rate_hz("esc_info") == 10.0
         time.sleep(0.2)
         assert not autopilot.of("COMMAND_ACK")  # answered on the output it came from only
         assert bridge.link.output_stats[0].messages == 1
@@ -614,7 +619,11 @@ def test_tlog_holds_telemetry_readable_with_our_dialect(tmp_path: Path) -> None:
     expected = populate(table, 4)
     path = tmp_path / "flight.tlog"
     gcs = Gcs()
-    mavlink = MavlinkConfig(url=gcs.url, stream_rate_hz=0.0, esc_info_hz=10.0)
+    mavlink = MavlinkConfig(
+        url=gcs.url,
+        stream_rate_hz=0.0,
+        autopilot_messages={"esc_status": 10.0, "esc_info": 10.0, "esc_telemetry": 10.0},
+    )
     try:
         with path.open("wb") as tlog:
             link = MavlinkLink(mavlink, NullSink(), tlog=tlog)

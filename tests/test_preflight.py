@@ -733,17 +733,20 @@ def test_check_prints_each_check_and_opens_nothing(
     lines = result.stdout.splitlines()
     assert lines[:2] == [f"{config}: OK", "  mixer quad-x: 4 outputs"]
     assert lines[2].startswith("  bus load ")
-    assert lines[3:8] == [
+    assert lines[3:9] == [
         f"  MAVLink: autopilot on udpout 127.0.0.1:{gcs.getsockname()[1]}; outputs: none",
         "  mixer inputs roll, pitch, yaw, thrust: all carried by servo_output_raw (roll, pitch, "
         "yaw, thrust by [mixer] axis_channels)",
         "  valid range [800, 2200] contains the input range [1000, 2000]",
         "  arming state older than 3000 ms counts as disarmed; motor test on, from system IDs 1, "
         "255",
-        lines[7],
+        "  MAVLink ESC telemetry for 4 ESCs: autopilot link by its HEARTBEAT: ArduPilot "
+        "ESC_TELEMETRY 2 Hz (112 B/s); PX4 ESC_STATUS 2 Hz, ESC_INFO 1 Hz (196 B/s); other "
+        "ESC_STATUS 2 Hz, ESC_INFO 1 Hz, ESC_TELEMETRY 2 Hz (308 B/s)",
+        lines[8],
     ]
-    assert lines[7].startswith("  MAVLink dialect loads (") and lines[7].endswith(".py)")
-    assert lines[8:] == [f"  recording into {record} (to be created in {tmp_path}, writable)"]
+    assert lines[8].startswith("  MAVLink dialect loads (") and lines[8].endswith(".py)")
+    assert lines[9:] == [f"  recording into {record} (to be created in {tmp_path}, writable)"]
     assert_nothing_opened(gcs, observer)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bridge.toml"]
 

@@ -34,6 +34,9 @@ from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
 
 S = ckesc.Msg1Status
+# The test's autopilot link stands in for a ground station here: it gets every family (the
+# per-link default sets are tested in test_mavlink_link_sets.py).
+EVERY_FAMILY = "autopilot_messages = { esc_status = 10, esc_info = 1, esc_telemetry = 10 }\n"
 dialect = load_dialect()
 INT16_MAX = 32767
 
@@ -115,7 +118,11 @@ def test_esc_status_info_and_telemetry_for_every_esc(
     try:
         # 20 ESCs' commands and telemetry fill a 500 kbit/s bus: a 1 Mbit/s bus, as on a big
         # vehicle (the bus-load check refuses the default).
-        daemon = start_daemon("--mixer", str(mixer), "--bitrate", "1000000")
+        config = tmp_path / "bridge.toml"
+        config.write_text(f"[mavlink]\n{EVERY_FAMILY}")
+        daemon = start_daemon(
+            "--mixer", str(mixer), "--bitrate", "1000000", "--config", str(config)
+        )
         autopilot.start_stream(20)  # heartbeats: the daemon answers to this link
         batches = range(0, n, 4)
         for index in batches:
@@ -172,7 +179,9 @@ def test_offline_after_the_timeout_and_back(
     start_daemon: Callable[..., Daemon],
 ) -> None:
     config = tmp_path / "bridge.toml"
-    config.write_text("[telemetry]\ntimeout_ms = 300\n[mavlink]\nesc_info_hz = 20\n")
+    config.write_text(
+        "[telemetry]\ntimeout_ms = 300\n[mavlink]\nautopilot_messages = { esc_info = 20 }\n"
+    )
     silent: set[int] = set()
     escs = Escs(can_port, ckesc_reports([1, 2, 3, 4], silent))
     try:
@@ -205,7 +214,7 @@ def test_ft_crc_errors_count_into_error_count_and_raise_generic(
     start_daemon: Callable[..., Daemon],
 ) -> None:
     config = tmp_path / "bridge.toml"
-    config.write_text("[telemetry]\npole_pairs = 7\nerror_burst = 5\n")
+    config.write_text(f"[telemetry]\npole_pairs = 7\nerror_burst = 5\n[mavlink]\n{EVERY_FAMILY}")
 
     def frames(tick: int) -> list[can.Message]:
         out = []

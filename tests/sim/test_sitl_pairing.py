@@ -37,7 +37,8 @@ class ArduCopterStandIn:
         self.asked_interval_us: float | None = None
         self.pwm = 1000
         self.armed = False
-        self.esc_status: list[Any] = []
+        self.esc_telemetry: list[Any] = []
+        self.unknown_to_ardupilot = 0  # ESC_STATUS/ESC_INFO: ArduPilot would drop them
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="arducopter", daemon=True)
         self._thread.start()
@@ -94,8 +95,10 @@ class ArduCopterStandIn:
 
     def _handle(self, conn: socket.socket, msg: Any) -> None:
         kind = msg.get_type()
-        if kind == "ESC_STATUS":
-            self.esc_status.append(msg)
+        if kind == "ESC_TELEMETRY_1_TO_4":  # what ArduPilot forwards to its ground stations
+            self.esc_telemetry.append(msg)
+        elif kind in ("ESC_STATUS", "ESC_INFO"):
+            self.unknown_to_ardupilot += 1
         elif (
             kind == "COMMAND_LONG"
             and msg.command == dialect.MAV_CMD_SET_MESSAGE_INTERVAL
@@ -152,7 +155,7 @@ def test_the_readme_sitl_recipe_flies(arducopter: tuple[ArduCopterStandIn, int])
         deadline = time.monotonic() + 10
         hovering: list[int] = []
         while time.monotonic() < deadline:
-            latest = autopilot.esc_status[-1] if autopilot.esc_status else None
+            latest = autopilot.esc_telemetry[-1] if autopilot.esc_telemetry else None
             if latest is not None and all(rpm > 5000 for rpm in latest.rpm):
                 hovering = list(latest.rpm)
                 break
@@ -161,12 +164,13 @@ def test_the_readme_sitl_recipe_flies(arducopter: tuple[ArduCopterStandIn, int])
         assert hovering and all(5000 < rpm < 11_000 for rpm in hovering), hovering
         autopilot.armed = False
         deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and any(autopilot.esc_status[-1].rpm):
+        while time.monotonic() < deadline and any(autopilot.esc_telemetry[-1].rpm):
             time.sleep(0.1)
-        assert not any(autopilot.esc_status[-1].rpm)  # disarmed: safe values, motors stopped
+        assert not any(autopilot.esc_telemetry[-1].rpm)  # disarmed: safe values, motors stopped
     finally:
         assert bridge.stop() == 0, bridge.output
         sim.terminate()
         out, _ = sim.communicate(timeout=10)
     assert sim.returncode == 0, out
     assert "SERVO_OUTPUT_RAW from 1/1 arriving at" in bridge.output
+    assert autopilot.unknown_to_ardupilot == 0  # the ArduPilot link's set: ESC_TELEMETRY only
