@@ -89,7 +89,14 @@ class Link:
         if not data:
             self.close_pair()
             return
+        # The stamp right before the forward, and the parsing after it: the bridge gets the
+        # bytes within a system call of the stamp, never before it.
         stamp = time.monotonic()
+        try:
+            self.client.sendall(data)
+        except OSError:
+            self.close_pair()
+            return
         lines = []
         for msg in self.parser.parse_buffer(data) or []:
             msg_id = msg.get_msgId()
@@ -99,11 +106,6 @@ class Link:
             elif msg_id == HEARTBEAT and msg.get_srcSystem() == 1 and msg.get_srcComponent() == 1:
                 armed = int(bool(msg.base_mode & ARMED_FLAG))
                 lines.append(f"H {self.index} {stamp:.6f} {armed}\n")
-        try:
-            self.client.sendall(data)
-        except OSError:
-            self.close_pair()
-            return
         if lines:
             self.log.write("".join(lines))
             self.log.flush()
