@@ -238,6 +238,7 @@ class ArduCopter:
         )
         self.process: Process | None = None
         self.starts = 0
+        self.realtime = False
 
     def port(self, serial: int) -> int:
         return ARDUPILOT_SERIAL_PORTS[serial] + 10 * self.instance
@@ -258,6 +259,25 @@ class ArduCopter:
             self.workdir / f"arducopter-{self.starts}.log",
             cwd=self.workdir,
         )
+        self.realtime = self.make_realtime()
+
+    def make_realtime(self) -> bool:
+        """Run SITL at a low SCHED_FIFO priority where permitted (below the bridge's loop, 50).
+
+        Why: SITL's clock (``time_usec``) is simulated time, which falls behind when the
+        process waits for a CPU. A flight controller's clock is a hardware timer that never
+        does, and on a loaded test machine (2 cores, other tests beside) a lag of a few hundred
+        ms was seen; the bridge then rightly takes the inputs for old ones. SITL sleeps ~96 %
+        of the time, so the priority costs the machine nothing. Threads inherit the policy
+        from the thread that creates them; any already there get it here too. Returns whether
+        it was permitted."""
+        assert self.process is not None
+        try:
+            for task in Path(f"/proc/{self.process.proc.pid}/task").iterdir():
+                os.sched_setscheduler(int(task.name), os.SCHED_FIFO, os.sched_param(5))
+        except (PermissionError, OSError):
+            return False
+        return True
 
     @property
     def pid(self) -> int:

@@ -429,6 +429,7 @@ def flight(
                 rig.prepare()
         result.events["end"] = time.monotonic()
         measured("ArduCopter flight wall time", f"{result.events['end'] - started:.1f} s")
+        measured("ArduCopter SITL at SCHED_FIFO 5", str(ap.realtime))
         yield result
 
 
@@ -465,6 +466,25 @@ def judged(rig: Rig, start: float, end: float) -> list[list[Command]]:
         if i >= 0 and t - rig.tap.servo[i].t <= FRESH_S:
             out.append(frame)
     return out
+
+
+def clock_lags(rig: Rig, start: float, end: float) -> list[str]:
+    """Where the autopilot's clock fell behind ours by more than 30 ms (a SITL process that
+    waited for a CPU, or was stopped): the least offset between the tap's stamp and the
+    message's ``time_usec`` per half second, compared with the half second before. The bridge
+    then rightly judges the inputs that much older, which explains zero frames with input
+    that looks fresh at the tap."""
+    least: dict[int, float] = {}
+    for s in rig.tap.servo:
+        if start <= s.t <= end:
+            k = int((s.t - start) * 2)
+            least[k] = min(least.get(k, float("inf")), s.t - s.time_usec / 1e6)
+    keys = sorted(least)
+    return [
+        f"{(least[b] - least[a]) * 1000:.0f} ms at t={b / 2:.1f} s of the phase"
+        for a, b in itertools.pairwise(keys)
+        if least[b] - least[a] > 0.03
+    ]
 
 
 def phases(flight: Flight) -> dict[str, tuple[float, float]]:
@@ -559,7 +579,11 @@ def test_every_frame_carries_the_newest_motor_output(
         f"{exact / len(frames):.1%} of {len(frames)} frames equal the newest output exactly, "
         f"{1 - len(wrong) / len(frames) / len(frames[0]):.2%} within one period",
     )
-    assert not wrong, f"{len(wrong)} commands off the newest output:\n" + "\n".join(wrong[:10])
+    assert not wrong, (
+        f"{len(wrong)} commands off the newest output:\n"
+        + "\n".join(wrong[:10])
+        + f"\nthe autopilot's clock fell behind: {clock_lags(rig, start, end)}"
+    )
 
 
 @pytest.mark.parametrize(
@@ -583,7 +607,10 @@ def test_no_zero_frames_in_flight(flight: Flight, rig_name: str, phase: str) -> 
     ]
     measured(f"{rig_name} zero frames in flight, {phase}", f"{len(blips)} of {len(frames)}")
     assert len(frames) >= 100, f"only {len(frames)} frames judged"
-    assert not blips, f"{len(blips)} all-zero frames in flight, at t = {blips[:10]} s"
+    assert not blips, (
+        f"{len(blips)} all-zero frames in flight, at t = {blips[:10]} s; the autopilot's clock "
+        f"fell behind: {clock_lags(rig, start, end)}"
+    )
 
 
 def safe_deadline_check(
