@@ -362,9 +362,11 @@ def start_sim(workdir: Path, name: str, protocol: str, can_port: int, escs: int 
 
 @dataclass(frozen=True)
 class ServoOutput:
-    """A SERVO_OUTPUT_RAW the tap forwarded to the bridge at ``t`` (monotonic)."""
+    """A SERVO_OUTPUT_RAW the tap forwarded to the bridge: not before ``t``, and done by
+    ``t_sent`` (monotonic)."""
 
     t: float
+    t_sent: float
     time_usec: int
     servos: tuple[int, ...]
 
@@ -404,8 +406,9 @@ class MavTap:
                 continue
             kind, link, t = parts[0], int(parts[1]), float(parts[2])
             rec = out.setdefault(link, TapRecord())
-            if kind == "S" and len(parts) == 12:
-                rec.servo.append(ServoOutput(t, int(parts[3]), tuple(int(p) for p in parts[4:])))
+            if kind == "S" and len(parts) == 13:
+                servos = tuple(int(p) for p in parts[5:])
+                rec.servo.append(ServoOutput(t, float(parts[3]), int(parts[4]), servos))
             elif kind == "H":
                 rec.heartbeats.append((t, parts[3] == "1"))
             elif kind == "E":

@@ -10,9 +10,10 @@ autopilot's link would, and waits for the bridge to connect again.
 Why a tap: the tests must know which motor output the bridge had when each CAN frame went out,
 from something that is not the bridge. The tap writes, with the monotonic clock read *before*
 it forwards the bytes (so the bridge cannot have seen a message before its stamp), every
-SERVO_OUTPUT_RAW and the autopilot's HEARTBEAT (armed or not) to LOG, one line each:
+SERVO_OUTPUT_RAW (also stamped after the forward: the bridge has it by then) and the
+autopilot's HEARTBEAT (armed or not) to LOG, one line each:
 
-    S <link> <t> <time_usec> <servo1> .. <servo8>
+    S <link> <t> <t_sent> <time_usec> <servo1> .. <servo8>
     H <link> <t> <armed 0|1>
     E <link> <t> <event>            (connected, upstream, closed)
 
@@ -89,20 +90,22 @@ class Link:
         if not data:
             self.close_pair()
             return
-        # The stamp right before the forward, and the parsing after it: the bridge gets the
-        # bytes within a system call of the stamp, never before it.
+        # Stamps right before and right after the forward, and the parsing after both: the
+        # bridge cannot have the bytes before the first, and has them by the second (however
+        # long this process waited for a CPU in between).
         stamp = time.monotonic()
         try:
             self.client.sendall(data)
         except OSError:
             self.close_pair()
             return
+        sent = time.monotonic()
         lines = []
         for msg in self.parser.parse_buffer(data) or []:
             msg_id = msg.get_msgId()
             if msg_id == SERVO_OUTPUT_RAW:
                 servos = " ".join(str(getattr(msg, f"servo{i}_raw")) for i in range(1, 9))
-                lines.append(f"S {self.index} {stamp:.6f} {msg.time_usec} {servos}\n")
+                lines.append(f"S {self.index} {stamp:.6f} {sent:.6f} {msg.time_usec} {servos}\n")
             elif msg_id == HEARTBEAT and msg.get_srcSystem() == 1 and msg.get_srcComponent() == 1:
                 armed = int(bool(msg.base_mode & ARMED_FLAG))
                 lines.append(f"H {self.index} {stamp:.6f} {armed}\n")
