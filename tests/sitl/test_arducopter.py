@@ -159,13 +159,16 @@ class Rig:
         self._servo_sent = [s.t_sent for s in self.tap.servo]
 
     def allowed(self, t: float, motor: int) -> set[float]:
-        """The values a command frame sent at ``t`` may carry: those of the motor outputs from
-        the newest one the bridge had a whole output period before (forwarded by t - PERIOD_S)
-        to the newest it could have had (forwarding begun by t). A fixed-rate sender carries
-        the newest input it had taken when its tick fired; one that arrived within the last
-        output period may not have been taken yet, so the one before it is allowed too."""
+        """The values a command frame sent at ``t`` may carry: those of the newest motor output
+        whose forwarding had begun by ``t``, of the one before it (one message of lag), and of
+        any back to the newest the bridge had a whole output period before ``t`` (forwarded by
+        t - PERIOD_S; one tick of lag). A fixed-rate sender carries the newest input it had
+        taken when its tick fired; one that arrived since may not have been taken yet. The
+        stamps themselves can be a few ms late on a loaded machine (the kernel may deliver
+        loopback packets from ksoftirqd), hence the message of lag beside the tick."""
         i = self.newest_index(t)
-        j = max(bisect.bisect_right(self._servo_sent, t - PERIOD_S) - 1, 0)
+        j = bisect.bisect_right(self._servo_sent, t - PERIOD_S) - 1
+        j = max(min(j, i - 1), 0)
         servo = self.tap.servo
         return {self.value_of(servo[k], motor) for k in range(j, i + 1)} if i >= 0 else set()
 
@@ -552,9 +555,9 @@ def test_every_frame_carries_the_newest_motor_output(
     flight: Flight, rig_name: str, phase: str
 ) -> None:
     """Every command frame sent while armed with fresh input equals the passthrough scaling of
-    the newest SERVO_OUTPUT_RAW, with the one-period lag fixed-rate sending implies (see
-    Rig.allowed): the frame at t carries an output that was the newest at some instant of
-    [t - 2.5 ms, t], as the tap forwarded them (Rig.allowed says exactly how)."""
+    the newest SERVO_OUTPUT_RAW, with the lag fixed-rate sending implies: the frame at t
+    carries the newest output the tap had begun to forward by t, the one before it, or one
+    forwarded within the output period before t (Rig.allowed)."""
     rig = rig_of(flight, rig_name)
     start, end = phases(flight)[phase]
     frames = judged(rig, start, end)
