@@ -35,6 +35,7 @@ import can
 import pytest
 from conftest import Observer, free_port
 
+from bridge.errors import CodecError
 from bridge.escs import ckesc, ft
 
 from .conftest import (
@@ -95,26 +96,42 @@ class Command:
     value: float
 
 
-def ckesc_commands(frames: Sequence[tuple[float, can.Message]]) -> list[list[Command]]:
-    """Per CKESC frame (RawCommand_12b group 1), the four motors' commands."""
+def ckesc_commands(
+    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+) -> list[list[Command]]:
+    """Per CKESC RawCommand_12b frame, the four motors' commands (a quad: group 1 only).
+    Frames that do not decode go to ``malformed``."""
     out = []
     for t, msg in frames:
-        with contextlib.suppress(Exception):
+        try:
             frame = ckesc.decode(msg)
-            if frame is not None and isinstance(frame.message, ckesc.RawCommand12b):
-                assert frame.message.group == 1
-                out.append([Command(t, i, float(v)) for i, v in enumerate(frame.message.throttles)])
+        except CodecError as exc:
+            if malformed is not None:
+                malformed.append(f"{msg}: {exc}")
+            continue
+        if frame is not None and isinstance(frame.message, ckesc.RawCommand12b):
+            group = frame.message.group
+            if group != 1 and malformed is not None:
+                malformed.append(f"{msg}: RawCommand_12b group {group} on a quad")
+            out.append([Command(t, i, float(v)) for i, v in enumerate(frame.message.throttles)])
     return out
 
 
-def ft_commands(frames: Sequence[tuple[float, can.Message]]) -> list[list[Command]]:
-    """Per FT command frame (one ESC each), its command."""
+def ft_commands(
+    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+) -> list[list[Command]]:
+    """Per FT SetCurrent frame (one ESC each), its command. Frames that do not decode go to
+    ``malformed``."""
     out = []
     for t, msg in frames:
-        with contextlib.suppress(Exception):
+        try:
             frame = ft.decode(msg)
-            if frame is not None and isinstance(frame.message, ft.SetCurrent):
-                out.append([Command(t, frame.esc_id - 1, frame.message.current_a)])
+        except CodecError as exc:
+            if malformed is not None:
+                malformed.append(f"{msg}: {exc}")
+            continue
+        if frame is not None and isinstance(frame.message, ft.SetCurrent):
+            out.append([Command(t, frame.esc_id - 1, frame.message.current_a)])
     return out
 
 
@@ -133,6 +150,7 @@ class Rig:
     expected: Callable[[int], float]
     tolerance: float
     commands: list[list[Command]] = field(default_factory=list)
+    malformed: list[str] = field(default_factory=list)
     tap: TapRecord = field(default_factory=TapRecord)
     bridge_exit: int | None = None
 
@@ -141,7 +159,7 @@ class Rig:
             frames = list(self.observer.frames)
         frames.sort(key=lambda f: f[0])
         decode = ckesc_commands if self.protocol == "ckesc" else ft_commands
-        self.commands = decode(frames)
+        self.commands = decode(frames, self.malformed)
 
     def telemetry_frames(self) -> list[tuple[float, can.Message]]:
         with self.observer._lock:
@@ -183,7 +201,6 @@ class MotorTest:
     sent: float
     ack: int
     end: float = 0.0
-    autopilot: int = 1  # which autopilot start ran it
 
 
 @dataclass
@@ -197,7 +214,6 @@ class Flight:
     heartbeat_rates: dict[int, tuple[int, float]] = field(default_factory=dict)
     servo_400: tuple[int, str, float] = (0, "", 0.0)
     arm_attempts: int = 0
-    gcs_arming_delay_ms: list[float] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------------------------
@@ -265,7 +281,7 @@ def motor_test(flight: Flight, label: str, motor: int, seconds: float) -> MotorT
         mavlink.MOTOR_TEST_ORDER_BOARD,
     )
     result = flight.gcs.ack(mavlink.MAV_CMD_DO_MOTOR_TEST, sent)
-    test = MotorTest(label, motor, sent, result, autopilot=flight.ap.starts)
+    test = MotorTest(label, motor, sent, result)
     flight.motor_tests.append(test)
     return test
 
@@ -435,6 +451,11 @@ def flight(
         result.events["end"] = time.monotonic()
         measured("ArduCopter flight wall time", f"{result.events['end'] - started:.1f} s")
         measured("ArduCopter SITL at SCHED_FIFO 5", str(ap.realtime))
+        measured(
+            "ArduCopter arming accepted",
+            f"{result.events['armed'] - result.events['restart']:.1f} s after its (re)start, "
+            f"attempt {result.arm_attempts}",
+        )
         yield result
 
 
@@ -780,7 +801,7 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
         rpm_now: dict[int, int] = {}
         volts_now: dict[int, int] = {}
         for t, msg in sorted(rig.telemetry_frames(), key=lambda f: f[0]):
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(CodecError):  # counted by the bus test
                 frame: Any = (ckesc.decode if rig.protocol == "ckesc" else ft.decode)(msg)
                 if frame is None:
                     continue
@@ -874,3 +895,12 @@ def test_heartbeat_interval(flight: Flight) -> None:
         f"{ms(first_armed - first_out)} after the first test output (ground station link)",
     )
     assert first_armed - first_out <= 0.05
+
+
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_bus_clean_and_bridge_stopped_cleanly(flight: Flight, rig_name: str) -> None:
+    """Every frame on the bus decodes (the bridge's commands and the ESCs' telemetry), and the
+    bridge, stopped with SIGTERM after the flight, exits 0."""
+    rig = rig_of(flight, rig_name)
+    assert not rig.malformed, f"{len(rig.malformed)} malformed frames: {rig.malformed[:5]}"
+    assert rig.bridge_exit == 0, f"exit status {rig.bridge_exit}:\n{rig.bridge.tail(15)}"
