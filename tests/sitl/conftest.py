@@ -161,6 +161,28 @@ def reserved_instance(
     raise AssertionError("no SITL instance number 1..99 with free ports")
 
 
+def widen_receive_buffer(bus: Any, size: int = 4 << 20) -> None:
+    """Let an observer's udp_multicast socket queue ``size`` bytes: a thread in a busy test
+    process may not read for a while, and ~1 600 frames/s (an FT bus) would overflow the
+    default buffer within a tenth of a second. (A duplicate of the descriptor shares the
+    socket, so closing it leaves the bus's own open.)"""
+    with socket.fromfd(bus.fileno(), socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+
+
+def udp_drops(bus: Any) -> int:
+    """Datagrams the kernel dropped for this bus's socket (a full receive buffer): an
+    observer that lost frames cannot vouch for what was on the bus."""
+    inode = os.fstat(bus.fileno()).st_ino
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        with contextlib.suppress(OSError), open(table) as f:
+            for line in f.readlines()[1:]:
+                fields = line.split()
+                if int(fields[9]) == inode:
+                    return int(fields[-1])
+    raise AssertionError(f"socket inode {inode} not in /proc/net/udp")
+
+
 # --------------------------------------------------------------------------------------------
 # Processes
 
