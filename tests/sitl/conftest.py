@@ -210,7 +210,8 @@ class Process:
             os.kill(self.proc.pid, sig)
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
-        """End it (``sig``, then SIGKILL after ``timeout_s``) and its whole session."""
+        """End it: ``sig``, then after ``timeout_s`` SIGKILL to its whole session (signalled
+        while its leader is not yet reaped, so the group id cannot belong to anyone else)."""
         if self.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.proc.pid, signal.SIGCONT)  # a stopped process cannot exit
@@ -218,10 +219,9 @@ class Process:
             try:
                 self.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(5)
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.killpg(self.proc.pid, signal.SIGKILL)  # anything it left behind in its session
         self._log.close()
         return self.proc.returncode
 
