@@ -1,0 +1,936 @@
+"""The bridge against a real ArduCopter SITL: one autopilot start, one flight, many checks.
+
+What runs (all on loopback, see conftest.py): ArduCopter SITL (quad, real time) with a ground
+station on SERIAL0; two bridges through their CLI, a CKESC one (RawCommand_12b, 400 Hz) on
+SERIAL1 and an FT one (current mode, 20 A full scale, 100 Hz per ESC) on SERIAL2, each through
+a recording tap and each on a CAN bus of its own with four simulated ESCs and an independent
+observer. The module-scoped ``flight`` fixture flies once (about 80 s: ArduCopter refuses to
+arm for ~40 s after a start) and keeps everything; each test then asserts one property of that
+record:
+
+1. while the autopilot boots: ArduCopter's own motor test (B), during which the autopilot is
+   killed (SIGKILL); a restart in the same directory and instance;
+2. while the restarted one boots: HEARTBEAT and SERVO_OUTPUT_RAW rates asked on the ground
+   station's link (what ArduCopter grants), and two more motor tests (A, then C);
+3. arm, GUIDED, take off, hover; a 1 s SIGSTOP of the autopilot mid-hover, hover; LAND, which
+   disarms. The stall comes last because the bridge stays stale long after it (STALL_XFAIL).
+
+``pytest tests/sitl`` (or ``-m sitl``) runs it; the numbers each test measured are printed in
+a "SITL measurements" section at the end of the run. ESC_BRIDGE_ARDUCOPTER names another
+build (see conftest.py).
+
+The scaling is the passthrough mixer's: PWM 1000..2000 µs to 0..1, then CKESC throttle
+round(2000·x) and FT current 20 A·x (the bridge's `[escs] ft_max_current_a` default).
+"""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+import itertools
+import os
+import signal
+import statistics
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from conftest import Observer, free_port
+
+from bridge.errors import CodecError
+from bridge.escs import ckesc, ft
+
+from .conftest import (
+    ARDUPILOT_SERIAL_PORTS,
+    ARDUPILOT_UDP_PORTS,
+    ArduCopter,
+    ArduCopterBuild,
+    GroundStation,
+    MavTap,
+    Process,
+    ServoOutput,
+    TapRecord,
+    armed,
+    from_autopilot,
+    mavlink,
+    measured,
+    reserved_instance,
+    start_bridge,
+    start_sim,
+    udp_drops,
+    widen_receive_buffer,
+)
+
+PERIOD_S = 1 / 400  # both bridges tick at 400 Hz (CKESC 400 Hz; FT 4 ESCs x 100 Hz)
+INPUT_TIMEOUT_S = 0.100  # [output] input_timeout_ms default
+STREAM_HZ = 200  # [mavlink] stream_rate_hz default
+FT_FULL_SCALE_A = 20.0
+# A frame is judged against the motor output only while that output is fresh: newer than half
+# the input timeout at the tap. Older ones (the stall, the kill) are the failsafe tests' part.
+FRESH_S = INPUT_TIMEOUT_S / 2
+CKESC_LINK, FT_LINK = 0, 1
+TEST_THROTTLE_PERCENT = 20.0
+TEST_PWM = 1200  # ArduCopter: percent of MOT_PWM_MIN..MAX (1000..2000)
+# Hover after the stall before landing; ESC_BRIDGE_SITL_RECOVERY_S longer measures how long the
+# bridge takes to trust the autopilot's inputs again (see STALL_XFAIL).
+RECOVERY_WAIT_S = float(os.environ.get("ESC_BRIDGE_SITL_RECOVERY_S", "3"))
+
+pytestmark = pytest.mark.sitl
+
+
+# --------------------------------------------------------------------------------------------
+# The scaling, written out here rather than taken from the bridge
+
+
+def ckesc_throttle(pwm: int) -> int:
+    return 2 * (min(max(pwm, 1000), 2000) - 1000)
+
+
+def ft_current(pwm: int) -> float:
+    return (min(max(pwm, 1000), 2000) - 1000) / 1000 * FT_FULL_SCALE_A
+
+
+@dataclass(frozen=True)
+class Command:
+    """One command frame as the observer saw it: kernel receive time, motor index (0-based),
+    value (CKESC throttle or FT amps). A CKESC 12b frame becomes four of these."""
+
+    t: float
+    motor: int
+    value: float
+
+
+def ckesc_commands(
+    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+) -> list[list[Command]]:
+    """Per CKESC RawCommand_12b frame, the four motors' commands (a quad: group 1 only).
+    Frames that do not decode go to ``malformed``."""
+    out = []
+    for t, msg in frames:
+        try:
+            frame = ckesc.decode(msg)
+        except CodecError as exc:
+            if malformed is not None:
+                malformed.append(f"{msg}: {exc}")
+            continue
+        if frame is not None and isinstance(frame.message, ckesc.RawCommand12b):
+            group = frame.message.group
+            if group != 1 and malformed is not None:
+                malformed.append(f"{msg}: RawCommand_12b group {group} on a quad")
+            out.append([Command(t, i, float(v)) for i, v in enumerate(frame.message.throttles)])
+    return out
+
+
+def ft_commands(
+    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+) -> list[list[Command]]:
+    """Per FT SetCurrent frame (one ESC each), its command. Frames that do not decode go to
+    ``malformed``."""
+    out = []
+    for t, msg in frames:
+        try:
+            frame = ft.decode(msg)
+        except CodecError as exc:
+            if malformed is not None:
+                malformed.append(f"{msg}: {exc}")
+            continue
+        if frame is not None and isinstance(frame.message, ft.SetCurrent):
+            out.append([Command(t, frame.esc_id - 1, frame.message.current_a)])
+    return out
+
+
+@dataclass
+class Rig:
+    """One bridge and what sits on its bus."""
+
+    name: str
+    protocol: str
+    link: int
+    component: int
+    can_port: int
+    observer: Observer
+    bridge: Process
+    sim: Process
+    expected: Callable[[int], float]
+    tolerance: float
+    commands: list[list[Command]] = field(default_factory=list)
+    malformed: list[str] = field(default_factory=list)
+    observer_drops: int = 0
+    tap: TapRecord = field(default_factory=TapRecord)
+    bridge_exit: int | None = None
+
+    def decode(self) -> None:
+        with self.observer._lock:
+            frames = list(self.observer.frames)
+        frames.sort(key=lambda f: f[0])
+        decode = ckesc_commands if self.protocol == "ckesc" else ft_commands
+        self.commands = decode(frames, self.malformed)
+
+    def telemetry_frames(self) -> list[tuple[float, can.Message]]:
+        with self.observer._lock:
+            return list(self.observer.frames)
+
+    def value_of(self, servo: ServoOutput, motor: int) -> float:
+        return self.expected(servo.servos[motor])
+
+    def newest_index(self, t: float) -> int:
+        """Index of the newest motor output the tap forwarded at or before ``t`` (-1: none)."""
+        return bisect.bisect_right(self._servo_times, t) - 1
+
+    def prepare(self) -> None:
+        self._servo_times = [s.t for s in self.tap.servo]
+        self._servo_sent = [s.t_sent for s in self.tap.servo]
+
+    def allowed(self, t: float, motor: int) -> set[float]:
+        """The values a command frame sent at ``t`` may carry: those of the newest motor output
+        whose forwarding had begun by ``t``, of the one before it (one message of lag), and of
+        any back to the newest the bridge had a whole output period before ``t`` (forwarded by
+        t - PERIOD_S; one tick of lag). A fixed-rate sender carries the newest input it had
+        taken when its tick fired; one that arrived since may not have been taken yet. The
+        stamps themselves can be a few ms late on a loaded machine (the kernel may deliver
+        loopback packets from ksoftirqd), hence the message of lag beside the tick."""
+        i = self.newest_index(t)
+        j = bisect.bisect_right(self._servo_sent, t - PERIOD_S) - 1
+        j = max(min(j, i - 1), 0)
+        servo = self.tap.servo
+        return {self.value_of(servo[k], motor) for k in range(j, i + 1)} if i >= 0 else set()
+
+    def matches(self, value: float, allowed: set[float]) -> bool:
+        return any(abs(value - a) <= self.tolerance for a in allowed)
+
+
+@dataclass
+class MotorTest:
+    label: str
+    motor: int  # param1 as sent; which output ArduCopter drives is read from the tap
+    sent: float
+    ack: int
+    end: float = 0.0
+
+
+@dataclass
+class Flight:
+    ap: ArduCopter
+    gcs: GroundStation
+    rigs: list[Rig]
+    started: float
+    events: dict[str, float] = field(default_factory=dict)
+    motor_tests: list[MotorTest] = field(default_factory=list)
+    heartbeat_rates: dict[int, tuple[int, float]] = field(default_factory=dict)
+    servo_400: tuple[int, str, float] = (0, "", 0.0)
+    arm_attempts: int = 0
+
+
+# --------------------------------------------------------------------------------------------
+# Flying it
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float, what: str) -> float:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not within {timeout_s} s")
+        time.sleep(0.02)
+    return time.monotonic()
+
+
+def streaming(tap: MavTap, link: int, since: float, min_messages: int = 50) -> bool:
+    rec = tap.records().get(link)
+    return rec is not None and sum(1 for s in rec.servo if s.t >= since) >= min_messages
+
+
+def bridge_spinning(rig: Rig, since: float) -> bool:
+    """A command frame with some motor non-zero since ``since``."""
+    with rig.observer._lock:
+        frames = [(t, m) for t, m in rig.observer.frames if t >= since]
+    decode = ckesc_commands if rig.protocol == "ckesc" else ft_commands
+    return any(c.value > 0 for frame in decode(frames) for c in frame)
+
+
+def message_interval(gcs: GroundStation, msg_id: int, hz: float) -> tuple[int, float]:
+    """Ask for ``msg_id`` at ``hz`` on the ground station's link: (ACK result, sent time)."""
+    sent = gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+    return gcs.ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, sent), sent
+
+
+def measure_heartbeat_rates(flight: Flight) -> None:
+    """What ArduCopter makes of MAV_CMD_SET_MESSAGE_INTERVAL for HEARTBEAT (id 0)."""
+    gcs = flight.gcs
+    for hz in (10, 50, 400):
+        result, sent = message_interval(gcs, 0, hz)
+        time.sleep(1.2)
+        beats = [
+            t for t, m in gcs.since(sent + 0.2, "HEARTBEAT") if from_autopilot(m) and t < sent + 1.2
+        ]
+        flight.heartbeat_rates[hz] = (result, len(beats) / 1.0)
+    # The rate the motor-test measurement below uses on this link.
+    message_interval(gcs, 0, 50)
+    result, sent = message_interval(gcs, 36, 400)
+    time.sleep(0.3)
+    # ArduPilot splits a long STATUSTEXT into chunks sharing a non-zero id.
+    chunks = [m for _, m in gcs.since(sent, "STATUSTEXT") if m.id]
+    texts = "".join(m.text for m in chunks if m.id == chunks[0].id) if chunks else ""
+    message_interval(gcs, 36, STREAM_HZ)
+    time.sleep(1.0)
+    got = [m for _, m in gcs.since(time.monotonic() - 0.8, "SERVO_OUTPUT_RAW")]
+    flight.servo_400 = (result, texts, len(got) / 0.8)
+
+
+def motor_test(flight: Flight, label: str, motor: int, seconds: float) -> MotorTest:
+    """ArduCopter's own motor test, sent by the ground station to the autopilot."""
+    sent = flight.gcs.command(
+        mavlink.MAV_CMD_DO_MOTOR_TEST,
+        motor,
+        mavlink.MOTOR_TEST_THROTTLE_PERCENT,
+        TEST_THROTTLE_PERCENT,
+        seconds,
+        0,
+        mavlink.MOTOR_TEST_ORDER_BOARD,
+    )
+    result = flight.gcs.ack(mavlink.MAV_CMD_DO_MOTOR_TEST, sent)
+    test = MotorTest(label, motor, sent, result)
+    flight.motor_tests.append(test)
+    return test
+
+
+def wait_disarmed_at_gcs(flight: Flight, after: float, timeout_s: float, what: str) -> float:
+    flight.gcs.wait_for(
+        "HEARTBEAT",
+        lambda m: from_autopilot(m) and not armed(m),
+        timeout_s,
+        after,
+        first=True,
+        what=what,
+    )
+    return time.monotonic()
+
+
+def arm_and_take_off(flight: Flight, altitude_m: float) -> None:
+    gcs = flight.gcs
+    deadline = flight.events["restart"] + 120 if "restart" in flight.events else 0
+    deadline = max(deadline, time.monotonic() + 120)
+    while True:  # pre-arm checks refuse until the EKF is happy (~40 s after start)
+        sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # custom mode 4: GUIDED
+        gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent)
+        sent = gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        flight.arm_attempts += 1
+        if gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, sent) == mavlink.MAV_RESULT_ACCEPTED:
+            break
+        if time.monotonic() > deadline:
+            texts = [m.text for _, m in gcs.since(sent, "STATUSTEXT")]
+            raise AssertionError(f"ArduCopter refused to arm for 120 s: {texts}")
+        time.sleep(1.0)
+    flight.events["armed"] = time.monotonic()
+    sent = gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+    result = gcs.ack(mavlink.MAV_CMD_NAV_TAKEOFF, sent)
+    assert result == mavlink.MAV_RESULT_ACCEPTED, f"takeoff refused: {result}"
+    gcs.wait_for(
+        "GLOBAL_POSITION_INT",
+        lambda m: m.relative_alt >= 900 * altitude_m,
+        30,
+        sent,
+        first=True,
+        what=f"altitude {0.9 * altitude_m} m after takeoff",
+    )
+    flight.events["hover"] = time.monotonic()
+
+
+def fly(flight: Flight, tap: MavTap) -> None:
+    ap, gcs = flight.ap, flight.gcs
+    # Both bridges ask for SERVO_OUTPUT_RAW themselves; wait until it flows to each.
+    for rig in flight.rigs:
+        wait_until(
+            lambda rig=rig: streaming(tap, rig.link, flight.started),  # type: ignore[misc]
+            40,
+            f"SERVO_OUTPUT_RAW reaching the {rig.name} bridge",
+        )
+    flight.events["streaming"] = time.monotonic()
+
+    # 1. While the autopilot boots (disarmed, on the ground, the EKF not ready to arm yet):
+    # ArduCopter's own motor test, cut short by killing the autopilot.
+    test = motor_test(flight, "B", 2, 5.0)
+    assert test.ack == mavlink.MAV_RESULT_ACCEPTED, f"motor test refused: {test.ack}"
+    for rig in flight.rigs:
+        wait_until(
+            lambda rig=rig: bridge_spinning(rig, test.sent),  # type: ignore[misc]
+            3,
+            f"the {rig.name} bridge spinning a motor in ArduCopter's motor test",
+        )
+    time.sleep(0.5)
+    flight.events["kill"] = time.monotonic()
+    ap.kill()
+    test.end = flight.events["kill"]
+    time.sleep(0.5)
+
+    # 2. The restart: the same working directory and instance, so the same ports. While it
+    # boots (~40 s before it lets itself be armed): the rates ArduCopter grants, and two more
+    # motor tests, the first with HEARTBEAT at 50 Hz on the ground station's link.
+    flight.events["restart"] = time.monotonic()
+    ap.start()
+    gcs.connect(20)
+    gcs.wait_for("HEARTBEAT", from_autopilot, 20, flight.events["restart"], what="HEARTBEAT")
+    for rig in flight.rigs:
+        wait_until(
+            lambda rig=rig: streaming(tap, rig.link, flight.events["restart"], 20),  # type: ignore[misc]
+            30,
+            f"SERVO_OUTPUT_RAW reaching the {rig.name} bridge after the restart",
+        )
+    measure_heartbeat_rates(flight)
+    test = motor_test(flight, "A", 3, 2.0)
+    assert test.ack == mavlink.MAV_RESULT_ACCEPTED, f"motor test refused: {test.ack}"
+    test.end = wait_disarmed_at_gcs(flight, test.sent + 0.5, 5, "disarmed after motor test A")
+    message_interval(gcs, 0, 1)  # back to ArduCopter's usual HEARTBEAT on this link too
+    test = motor_test(flight, "C", 4, 2.0)
+    assert test.ack == mavlink.MAV_RESULT_ACCEPTED, f"motor test refused: {test.ack}"
+    test.end = wait_disarmed_at_gcs(flight, test.sent + 0.5, 5, "disarmed after motor test C")
+    message_interval(gcs, 33, 10)  # GLOBAL_POSITION_INT, for the altitude
+
+    # 3. The flight, on the restarted autopilot. The stall comes last: after it the bridge
+    # judges the inputs stale for a long time (see STALL_XFAIL).
+    arm_and_take_off(flight, 3.0)
+    time.sleep(2.0)
+    flight.events["stall"] = time.monotonic()
+    ap.process.send_signal(signal.SIGSTOP)  # type: ignore[union-attr]
+    time.sleep(1.0)
+    ap.process.send_signal(signal.SIGCONT)  # type: ignore[union-attr]
+    flight.events["resume"] = time.monotonic()
+    time.sleep(RECOVERY_WAIT_S)
+    sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
+    assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent) == mavlink.MAV_RESULT_ACCEPTED
+    flight.events["land"] = sent
+    flight.events["disarmed"] = wait_disarmed_at_gcs(flight, sent, 40, "disarmed after LAND")
+
+
+@pytest.fixture(scope="module")
+def flight(
+    arducopter_build: ArduCopterBuild, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Flight]:
+    workdir: Path = tmp_path_factory.mktemp("arducopter")
+    with contextlib.ExitStack() as stack:
+        instance = stack.enter_context(
+            reserved_instance(ARDUPILOT_SERIAL_PORTS, ARDUPILOT_UDP_PORTS)
+        )
+        ap = ArduCopter(arducopter_build, workdir, instance, {"SIM_ESC_TELEM": 0})
+        stack.callback(ap.stop)
+        tap = MavTap(workdir, [ap.port(1), ap.port(2)])
+        stack.callback(tap.stop)
+        rigs = []
+        for name, protocol, link, component, expected, tol in (
+            ("ckesc", "ckesc", CKESC_LINK, 191, ckesc_throttle, 0.0),
+            ("ft", "ft", FT_LINK, 192, ft_current, 1e-4),
+        ):
+            can_port = free_port()
+            observer = Observer(can_port)
+            stack.callback(observer.close)
+            widen_receive_buffer(observer.bus)
+            sim = start_sim(workdir, name, protocol, can_port)
+            stack.callback(sim.stop)
+            bridge = start_bridge(
+                workdir,
+                name,
+                protocol,
+                tap.listen_ports[link],
+                can_port,
+                f"[mavlink]\ncomponent_id = {component}\nstream_rate_hz = {STREAM_HZ}\n",
+            )
+            stack.callback(bridge.stop)
+            rigs.append(
+                Rig(name, protocol, link, component, can_port, observer, bridge, sim, expected, tol)
+            )
+        ap.start()
+        started = time.monotonic()
+        gcs = GroundStation(ap.port(0))
+        stack.callback(gcs.close)
+        result = Flight(ap, gcs, rigs, started)
+        try:
+            fly(result, tap)
+        except Exception as exc:
+            logs = "\n".join(
+                f"--- {p.log_path.name} ---\n{p.tail(15)}"
+                for p in [*(r.bridge for r in rigs), ap.process]
+                if p is not None
+            )
+            raise AssertionError(f"the flight failed: {exc}\n{logs}") from exc
+        finally:
+            records = tap.records()
+            for rig in rigs:
+                rig.tap = records.get(rig.link, TapRecord())
+                rig.bridge_exit = rig.bridge.stop()
+                rig.observer_drops = udp_drops(rig.observer.bus)
+                rig.decode()
+                rig.prepare()
+        result.events["end"] = time.monotonic()
+        measured("ArduCopter flight wall time", f"{result.events['end'] - started:.1f} s")
+        measured("ArduCopter SITL at SCHED_FIFO 5", str(ap.realtime))
+        measured(
+            "ArduCopter arming accepted",
+            f"{result.events['armed'] - result.events['restart']:.1f} s after its (re)start, "
+            f"attempt {result.arm_attempts}",
+        )
+        yield result
+
+
+# --------------------------------------------------------------------------------------------
+# Reading the record
+
+
+def ms(seconds: float) -> str:
+    return f"{seconds * 1000:.0f} ms"
+
+
+def pct(values: Sequence[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+
+
+def armed_at(rig: Rig, t: float) -> bool:
+    """The arming state of the newest HEARTBEAT the tap forwarded before ``t``."""
+    beats = rig.tap.heartbeats
+    i = bisect.bisect_right([b[0] for b in beats], t) - 1
+    return i >= 0 and beats[i][1]
+
+
+def judged(rig: Rig, start: float, end: float) -> list[list[Command]]:
+    """The frames sent in [start, end] that must carry the newest motor output: the autopilot
+    armed (its HEARTBEAT, forwarded a whole output period before the frame: the bridge obeys
+    it, not the outputs) and the newest motor output fresh (forwarded within FRESH_S)."""
+    out = []
+    for frame in rig.commands:
+        t = frame[0].t
+        if not start <= t <= end or not armed_at(rig, t - PERIOD_S):
+            continue
+        i = rig.newest_index(t)
+        if i >= 0 and t - rig.tap.servo[i].t <= FRESH_S:
+            out.append(frame)
+    return out
+
+
+def clock_lags(rig: Rig, start: float, end: float) -> list[str]:
+    """Where the autopilot's clock fell behind ours by more than 30 ms (a SITL process that
+    waited for a CPU, or was stopped): the least offset between the tap's stamp and the
+    message's ``time_usec`` per half second, compared with the half second before. The bridge
+    then rightly judges the inputs that much older, which explains zero frames with input
+    that looks fresh at the tap."""
+    least: dict[int, float] = {}
+    for s in rig.tap.servo:
+        if start <= s.t <= end:
+            k = int((s.t - start) * 2)
+            least[k] = min(least.get(k, float("inf")), s.t - s.time_usec / 1e6)
+    keys = sorted(least)
+    return [
+        f"{(least[b] - least[a]) * 1000:.0f} ms at t={b / 2:.1f} s of the phase"
+        for a, b in itertools.pairwise(keys)
+        if least[b] - least[a] > 0.03
+    ]
+
+
+def phases(flight: Flight) -> dict[str, tuple[float, float]]:
+    e = flight.events
+    tests = {t.label: t for t in flight.motor_tests}
+    return {
+        "motor test A": (tests["A"].sent, tests["A"].end),
+        "takeoff and hover": (e["armed"], e["stall"]),
+        "hover after the stall, land": (e["resume"], e["disarmed"]),
+        "motor test B (killed)": (tests["B"].sent, e["kill"]),
+        "motor test C": (tests["C"].sent, tests["C"].end),
+    }
+
+
+PHASES = [
+    "motor test A",
+    "takeoff and hover",
+    "hover after the stall, land",
+    "motor test B (killed)",
+    "motor test C",
+]
+STALL_XFAIL = pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "finding: SITL's time_usec stands still while the process is stopped, so after SIGCONT "
+        "every SERVO_OUTPUT_RAW carries a time 1 s behind; bridge/mavlink/clock.py lets its "
+        "offset estimate rise by only 2 % of remote time, so the bridge judges the fresh "
+        "inputs ~1 s old and stays in FAILSAFE input stale for ~40 s (measured: 40.0 s) "
+        "while the autopilot flies on"
+    ),
+)
+
+
+def phase_params() -> list[Any]:
+    params = []
+    for rig in ("ckesc", "ft"):
+        for phase in PHASES:
+            marks = [STALL_XFAIL] if phase == "hover after the stall, land" else []
+            params.append(pytest.param(rig, phase, marks=marks, id=f"{rig}-{phase}"))
+    return params
+
+
+def rig_of(flight: Flight, name: str) -> Rig:
+    return next(r for r in flight.rigs if r.name == name)
+
+
+def first_test_input(rig: Rig, test: MotorTest) -> tuple[ServoOutput, int]:
+    """The first motor output of ``test`` that moved a motor, and which (0-based)."""
+    for servo in rig.tap.servo:
+        if servo.t >= test.sent and any(v != 1000 for v in servo.servos[:4]):
+            moved = [i for i, v in enumerate(servo.servos[:4]) if v != 1000]
+            assert len(moved) == 1, f"motor test {test.label} moved outputs {moved}: {servo}"
+            return servo, moved[0]
+    raise AssertionError(f"motor test {test.label}: no output moved on the {rig.name} link")
+
+
+# --------------------------------------------------------------------------------------------
+# The checks
+
+
+@pytest.mark.parametrize(("rig_name", "phase"), phase_params())
+def test_every_frame_carries_the_newest_motor_output(
+    flight: Flight, rig_name: str, phase: str
+) -> None:
+    """Every command frame sent while armed with fresh input equals the passthrough scaling of
+    the newest SERVO_OUTPUT_RAW, with the lag fixed-rate sending implies: the frame at t
+    carries the newest output the tap had begun to forward by t, the one before it, or one
+    forwarded within the output period before t (Rig.allowed)."""
+    rig = rig_of(flight, rig_name)
+    start, end = phases(flight)[phase]
+    frames = judged(rig, start, end)
+    assert len(frames) >= 100, (
+        f"{phase}: only {len(frames)} {rig_name} frames sent armed with fresh input "
+        f"(of {sum(1 for f in rig.commands if start <= f[0].t <= end)} in the phase)"
+    )
+    wrong = []
+    exact = 0
+    for frame in frames:
+        t = frame[0].t
+        newest = rig.tap.servo[rig.newest_index(t)]
+        if all(c.value == rig.value_of(newest, c.motor) for c in frame):
+            exact += 1
+        for c in frame:
+            allowed = rig.allowed(t, c.motor)
+            if not rig.matches(c.value, allowed):
+                wrong.append(
+                    f"t={t - flight.started:.3f} s motor {c.motor + 1}: {c.value:g}, allowed "
+                    f"{sorted(allowed)}; newest output {newest.servos[:4]} forwarded "
+                    f"{ms(t - newest.t)} before"
+                )
+    measured(
+        f"{rig_name} tracking, {phase}",
+        f"{exact / len(frames):.1%} of {len(frames)} frames equal the newest output exactly, "
+        f"{1 - len(wrong) / len(frames) / len(frames[0]):.2%} within one period",
+    )
+    assert not wrong, (
+        f"{len(wrong)} commands off the newest output:\n"
+        + "\n".join(wrong[:10])
+        + f"\nthe autopilot's clock fell behind: {clock_lags(rig, start, end)}"
+    )
+
+
+@pytest.mark.parametrize(
+    ("rig_name", "phase"),
+    [
+        pytest.param(r, p, marks=[STALL_XFAIL] if "stall" in p else [], id=f"{r}-{p}")
+        for r in ("ckesc", "ft")
+        for p in ("takeoff and hover", "hover after the stall, land")
+    ],
+)
+def test_no_zero_frames_in_flight(flight: Flight, rig_name: str, phase: str) -> None:
+    """No all-zero (safe) frame while armed with fresh input whose scaling is not zero."""
+    rig = rig_of(flight, rig_name)
+    start, end = phases(flight)[phase]
+    frames = judged(rig, start, end)
+    blips = [
+        f[0].t - flight.started
+        for f in frames
+        if all(c.value == 0 for c in f)
+        and any(rig.value_of(rig.tap.servo[rig.newest_index(f[0].t)], c.motor) for c in f)
+    ]
+    measured(f"{rig_name} zero frames in flight, {phase}", f"{len(blips)} of {len(frames)}")
+    assert len(frames) >= 100, f"only {len(frames)} frames judged"
+    assert not blips, (
+        f"{len(blips)} all-zero frames in flight, at t = {blips[:10]} s; the autopilot's clock "
+        f"fell behind: {clock_lags(rig, start, end)}"
+    )
+
+
+def gap_after(rig: Rig, t: float) -> tuple[ServoOutput, ServoOutput]:
+    """The last motor output before, and the first after, the first silence of over 0.5 s
+    that ends after ``t`` (a stall, a kill): found in the record rather than taken from when
+    the signal was sent, since bytes written just before it still arrive after it."""
+    servo = rig.tap.servo
+    for a, b in itertools.pairwise(servo[max(rig.newest_index(t), 0) :]):
+        if b.t - a.t > 0.5:
+            return a, b
+    raise AssertionError(f"no gap in the {rig.name} link's motor outputs after t={t}")
+
+
+def safe_deadline_check(rig: Rig, until: float, what: str) -> tuple[float, float]:
+    """From the last motor output forwarded before the gap that ends at ``until`` (the
+    autopilot stopped or died; bytes it wrote just before still arrive after the signal, so
+    the gap is where the outputs stop, not when the signal was sent), every ESC gets a safe
+    (zero) command within input_timeout + 2 output periods, and nothing but safe commands
+    follow until ``until``. Returns (last input, first safe frame)."""
+    last = rig.tap.servo[rig.newest_index(until - 1e-6)]
+    period = PERIOD_S if rig.protocol == "ckesc" else 4 * PERIOD_S  # FT: each ESC at 100 Hz
+    deadline = last.t + INPUT_TIMEOUT_S + 2 * period
+    after = [c for f in rig.commands for c in f if last.t < c.t <= until]
+    zero_by = {
+        m: min((c.t for c in after if c.motor == m and c.value == 0), default=None)
+        for m in range(4)
+    }
+    late = {m + 1: t for m, t in zero_by.items() if t is None or t > deadline}
+    assert not late, (
+        f"{what}: ESC(s) {sorted(late)} got no safe command within "
+        f"{ms(deadline - last.t)} of the last input (first at "
+        f"{[None if t is None else ms(t - last.t) for t in late.values()]})"
+    )
+    nonzero = [c for c in after if c.t > deadline and c.value != 0]
+    assert not nonzero, (
+        f"{what}: {len(nonzero)} non-zero commands after the failsafe deadline, the first "
+        f"{ms(nonzero[0].t - last.t)} after the last input: {nonzero[:3]}"
+    )
+    first_safe = min(t for t in zero_by.values() if t is not None)
+    return last.t, first_safe
+
+
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_stall_goes_safe_in_time(flight: Flight, rig_name: str) -> None:
+    """SIGSTOP of the autopilot for 1 s mid-hover: safe within input_timeout + 2 periods."""
+    rig = rig_of(flight, rig_name)
+    e = flight.events
+    _, first_after = gap_after(rig, e["stall"] - 0.1)
+    last, first_safe = safe_deadline_check(rig, first_after.t, "stall")
+    assert armed_at(rig, last), "the stall was not in flight"
+    measured(f"{rig_name} failsafe after SIGSTOP", f"{ms(first_safe - last)} after the last input")
+
+
+@STALL_XFAIL
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_stall_recovers_after_sigcont(flight: Flight, rig_name: str) -> None:
+    """After SIGCONT the bridge tracks the motor outputs again within a few output periods."""
+    rig = rig_of(flight, rig_name)
+    e = flight.events
+    _, resumed = gap_after(rig, e["stall"] - 0.1)
+    running = [f[0].t for f in rig.commands if f[0].t > resumed.t and any(c.value > 0 for c in f)]
+    recovery = running[0] - resumed.t if running else None
+    measured(
+        f"{rig_name} recovery after SIGCONT",
+        f"{ms(recovery)} after the first input" if recovery is not None else "never (in flight)",
+    )
+    assert recovery is not None and recovery <= 0.05, (
+        f"no non-zero frame within 50 ms of the first input after SIGCONT "
+        f"(first: {None if recovery is None else ms(recovery)}); bridge log:\n"
+        + "\n".join(rig.bridge.tail(8).splitlines())
+    )
+
+
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_kill_and_restart(flight: Flight, rig_name: str) -> None:
+    """The autopilot killed mid motor test: safe values in time, kept up (the loop goes on
+    sending), then the bridge reconnects to the restarted autopilot and gets its outputs."""
+    rig = rig_of(flight, rig_name)
+    e = flight.events
+    last, first_safe = safe_deadline_check(rig, e["restart"], "kill")
+    assert armed_at(rig, last), "the kill was not while the outputs were armed"
+    outage = [f for f in rig.commands if e["kill"] + 0.2 <= f[0].t <= e["restart"]]
+    expected = (e["restart"] - e["kill"] - 0.2) / PERIOD_S
+    assert len(outage) >= 0.5 * expected, (
+        f"the bridge sent {len(outage)} frames while the autopilot was dead (~{expected:.0f} "
+        "expected): it must keep the ESCs fed with safe values"
+    )
+    inputs = [s for s in rig.tap.servo if s.t > e["restart"]]
+    assert inputs, "no SERVO_OUTPUT_RAW reached the bridge after the restart"
+    reconnect = inputs[0].t - e["restart"]
+    measured(f"{rig_name} failsafe after kill", f"{ms(first_safe - last)} after the last input")
+    measured(
+        f"{rig_name} reconnect after restart",
+        f"{reconnect:.2f} s from the autopilot's start to the first motor output at the bridge",
+    )
+    assert reconnect < 15, f"the bridge got outputs only {reconnect:.1f} s after the restart"
+
+
+def motor_tests_of(flight: Flight) -> list[MotorTest]:
+    """The motor tests in the order they ran (B, killed, first)."""
+    return list(flight.motor_tests)
+
+
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_ardupilot_motor_test_spins_the_right_motor(flight: Flight, rig_name: str) -> None:
+    """ArduCopter's own DO_MOTOR_TEST: the ESC on the output ArduCopter drives spins at the
+    test's value, and no other ESC gets anything but zero."""
+    rig = rig_of(flight, rig_name)
+    for test in motor_tests_of(flight):
+        first, motor = first_test_input(rig, test)
+        assert first.servos[motor] == TEST_PWM
+        frames = [c for f in rig.commands for c in f if first.t <= c.t <= test.end]
+        others = [c for c in frames if c.motor != motor and c.value != 0]
+        assert not others, f"motor test {test.label}: other motors commanded: {others[:3]}"
+        spun = [c for c in frames if c.motor == motor and c.value != 0]
+        assert spun, f"motor test {test.label}: motor {motor + 1} never commanded"
+        assert all(rig.matches(c.value, {rig.expected(TEST_PWM)}) for c in spun), spun[:3]
+        measured(
+            f"ArduCopter motor test {test.label}: param1 {test.motor} drives", f"servo{motor + 1}"
+        )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "the bridge learns ArduCopter's arming only from its 1 Hz HEARTBEAT: the test's first "
+        "~0-1 s go out as zeros (a higher-rate HEARTBEAT request is being added to the daemon)"
+    ),
+)
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_ardupilot_motor_test_from_its_first_frame(flight: Flight, rig_name: str) -> None:
+    """The first command frame after the first test output reached the bridge (one output
+    period later) already carries the test value."""
+    rig = rig_of(flight, rig_name)
+    delays = []
+    late = []
+    for test in motor_tests_of(flight):
+        first, motor = first_test_input(rig, test)
+        mine = [c for f in rig.commands for c in f if c.motor == motor and c.t > first.t]
+        spinning = [c for c in mine if c.value != 0]
+        delays.append(spinning[0].t - first.t if spinning else float("inf"))
+        due = [c for c in mine if c.t > first.t + PERIOD_S]
+        if not due or not rig.matches(due[0].value, {rig.expected(TEST_PWM)}):
+            late.append(f"{test.label}: first frame {due[0] if due else None}")
+    measured(
+        f"{rig_name} motor test first non-zero frame",
+        ", ".join(f"{t.label} {ms(d)}" for t, d in zip(motor_tests_of(flight), delays, strict=True))
+        + " after the first test output",
+    )
+    assert not late, "motor test not on the first frame: " + "; ".join(late)
+
+
+def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
+    """ESC_TELEMETRY_1_TO_4 from each bridge (components 191 and 192), forwarded by ArduCopter
+    to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus;
+    ArduCopter sends none of its own (SIM_ESC_TELEM 0)."""
+    start, end = flight.events["hover"], flight.events["stall"]
+    received = flight.gcs.since(flight.started, "ESC_TELEMETRY_1_TO_4")
+    own = [m for _, m in received if m.get_srcComponent() == 1]
+    assert not own, f"ArduCopter sent ESC telemetry of its own: {own[:2]}"
+    for rig in flight.rigs:
+        bus: dict[int, list[tuple[float, int, int]]] = {m: [] for m in range(4)}
+        rpm_now: dict[int, int] = {}
+        volts_now: dict[int, int] = {}
+        for t, msg in sorted(rig.telemetry_frames(), key=lambda f: f[0]):
+            with contextlib.suppress(CodecError):  # counted by the bus test
+                frame: Any = (ckesc.decode if rig.protocol == "ckesc" else ft.decode)(msg)
+                if frame is None:
+                    continue
+                m = frame.node_id - 1
+                rec = frame.message
+                if isinstance(rec, ckesc.Msg1):
+                    rpm_now[m] = abs(rec.speed_rpm)
+                elif isinstance(rec, ft.RealtimeData1):
+                    rpm_now[m] = abs(int(rec.erpm / 7))
+                elif isinstance(rec, ckesc.Msg2 | ft.RealtimeData2):
+                    v = rec.voltage_v if isinstance(rec, ckesc.Msg2) else rec.battery_voltage_v
+                    volts_now[m] = round(v * 100)
+                else:
+                    continue
+                if m in rpm_now and m in volts_now:
+                    bus[m].append((t, rpm_now[m], volts_now[m]))
+        mine = [
+            (t, m)
+            for t, m in received
+            if m.get_srcComponent() == rig.component and start <= t <= end
+        ]
+        assert len(mine) >= 10, (
+            f"{len(mine)} ESC_TELEMETRY_1_TO_4 from the {rig.name} bridge (component "
+            f"{rig.component}) reached the ground station in {end - start:.1f} s of hover"
+        )
+        for t, msg in mine:
+            for m in range(4):
+                # The bus a second before the ground station got it (and a little after: the
+                # stamps of two processes on a loaded machine can be a few ms apart).
+                seen = [(r, v) for ts, r, v in bus[m] if t - 1.0 <= ts <= t + 0.05]
+                rpms, volts = {r for r, _ in seen}, {v for _, v in seen}
+                assert msg.rpm[m] > 1000, f"{rig.name} ESC {m + 1}: {msg.rpm[m]} rpm in hover"
+                assert any(abs(msg.rpm[m] - r) <= 1 for r in rpms), (
+                    f"{rig.name} ESC {m + 1}: the ground station got {msg.rpm[m]} rpm; the bus "
+                    f"carried {sorted(rpms, key=lambda r: abs(r - msg.rpm[m]))[:5]} (nearest) "
+                    "in the second before"
+                )
+                assert any(abs(msg.voltage[m] - v) <= 1 for v in volts), (
+                    f"{rig.name} ESC {m + 1}: the ground station got {msg.voltage[m]} cV; the "
+                    f"bus carried {sorted(volts)} in the second before"
+                )
+        measured(
+            f"{rig.name} ESC_TELEMETRY_1_TO_4 at the ground station",
+            f"{len(mine) / (end - start):.1f} Hz in hover, values as on the bus",
+        )
+
+
+def test_servo_output_rate(flight: Flight) -> None:
+    """SERVO_OUTPUT_RAW reaches each bridge at the 200 Hz it asks for; 400 Hz is denied."""
+    e = flight.events
+    for rig in flight.rigs:
+        times = [s.t for s in rig.tap.servo if e["armed"] <= s.t <= e["stall"]]
+        rate = (len(times) - 1) / (times[-1] - times[0])
+        gaps = [b - a for a, b in itertools.pairwise(times)]
+        measured(
+            f"{rig.name} SERVO_OUTPUT_RAW at the bridge (asked {STREAM_HZ} Hz)",
+            f"{rate:.1f} Hz; gap p50 {ms(statistics.median(gaps))}, p99 {ms(pct(gaps, 0.99))},"
+            f" max {ms(max(gaps))}",
+        )
+        assert 0.9 * STREAM_HZ <= rate <= 1.1 * STREAM_HZ, f"{rig.name}: {rate:.1f} Hz"
+    result, texts, rate = flight.servo_400
+    measured(
+        "SERVO_OUTPUT_RAW at 400 Hz (ground station link)",
+        f"ACK {result} ({texts.strip()}); the 200 Hz asked before stays: {rate:.0f} Hz",
+    )
+    assert result == mavlink.MAV_RESULT_DENIED
+
+
+def test_heartbeat_interval(flight: Flight) -> None:
+    """What a higher-rate HEARTBEAT request can rely on: ArduCopter honours
+    MAV_CMD_SET_MESSAGE_INTERVAL for HEARTBEAT (id 0) up to its loop rate, per link."""
+    rates = flight.heartbeat_rates
+    measured(
+        "HEARTBEAT interval (ground station link)",
+        ", ".join(f"{hz} Hz asked: ACK {r}, {got:.0f}/s" for hz, (r, got) in rates.items()),
+    )
+    for hz in (10, 50):
+        result, got = rates[hz]
+        assert result == mavlink.MAV_RESULT_ACCEPTED and 0.8 * hz <= got <= 1.2 * hz, rates
+    assert rates[400][0] == mavlink.MAV_RESULT_DENIED, rates
+    # Motor test A ran with HEARTBEAT at 50 Hz and SERVO_OUTPUT_RAW at 200 Hz on this link:
+    # how long after the test's first output the armed HEARTBEAT came, by the autopilot's own
+    # clock (the SERVO_OUTPUT_RAW just before that HEARTBEAT in the stream), so that this
+    # process's receive jitter does not count.
+    test = next(t for t in flight.motor_tests if t.label == "A")
+    first_out: int | None = None
+    newest_out = 0
+    for _, m in flight.gcs.since(test.sent):
+        if m.get_type() == "SERVO_OUTPUT_RAW":
+            newest_out = m.time_usec
+            moved = any(getattr(m, f"servo{i}_raw") != 1000 for i in range(1, 5))
+            if first_out is None and moved:
+                first_out = m.time_usec
+        elif m.get_type() == "HEARTBEAT" and from_autopilot(m) and armed(m):
+            break
+    # None: the armed HEARTBEAT came before the test's first output.
+    delay_s = 0.0 if first_out is None else (newest_out - first_out) / 1e6
+    measured(
+        "motor test A, armed HEARTBEAT at 50 Hz",
+        "before the first test output"
+        if first_out is None
+        else f"within {ms(delay_s + 0.005)} of the first test output (autopilot clock)",
+    )
+    assert delay_s <= 0.025, f"armed HEARTBEAT {ms(delay_s)} after the test began"
+
+
+@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+def test_bus_clean_and_bridge_stopped_cleanly(flight: Flight, rig_name: str) -> None:
+    """Every frame on the bus decodes (the bridge's commands and the ESCs' telemetry), the
+    observer lost none of them, and the bridge, stopped with SIGTERM after the flight, exits
+    0."""
+    rig = rig_of(flight, rig_name)
+    assert rig.observer_drops == 0, f"the observer's socket dropped {rig.observer_drops} frames"
+    assert not rig.malformed, f"{len(rig.malformed)} malformed frames: {rig.malformed[:5]}"
+    assert rig.bridge_exit == 0, f"exit status {rig.bridge_exit}:\n{rig.bridge.tail(15)}"
