@@ -1,0 +1,614 @@
+"""The bridge against a real PX4 v1.16.0 SITL (SIH quad): one flight, many checks.
+
+One PX4 start serves the whole module. Two bridges fly the same flight side by side, each on
+a link, a CAN bus, four simulated CKESCs and an observer of its own:
+
+* ``aos``: ``--source actuator_output_status`` on PX4's own onboard link (14580+N -> 14540+N);
+* ``sor``: ``--source servo_output_raw`` on a second onboard link added with ``mavlink start``.
+
+Between PX4 and each bridge a UDP tap (a relay in a process of its own) records every
+datagram PX4 sends, stamped before it is forwarded: the test's own record of which motor
+output the bridge could have had at any moment. A pymavlink ground station on PX4's GCS port
+flies: arm, takeoff, hover, a 1 s SIGSTOP of PX4, hover, land, disarm; then PX4 is killed,
+restarted, and armed once more. The checks below read the observers, the taps and the ground
+station afterwards.
+
+The lag rule. A command frame observed at time t must equal the scaling (below) of one of
+the motor outputs the tap forwarded in [t_j, t], where t_j is the time of the newest output
+forwarded at or before t - LAG_S: a frame may carry an older output for at most LAG_S after a
+newer one reached the bridge, never one newer than the tap has seen. An all-zero frame is
+also allowed when the bridge must be safe: PX4's newest HEARTBEAT (at t or t - LAG_S) says
+disarmed, or the newest output is nearly stale (forwarded longer than input_timeout_ms -
+STALE_MARGIN_S ago; PX4 produces an output before it sends it). The scaling is the
+passthrough's: throttle = int(clamp((pwm - 1000) / 1000, 0, 1) * 2000 + 0.5) for motors 1..4.
+
+``pytest -s`` prints the measurements (and ``$ESC_BRIDGE_SITL_REPORT`` names a JSON file to
+append them to, as bench/sitl_px4.py does).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+import os
+import statistics
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from _px4 import (
+    GroundStation,
+    LoggedProcess,
+    Px4,
+    UdpTap,
+    dialect,
+    extract_build,
+    find_build,
+    px4_instance,
+    start_bridge,
+    start_sim_escs,
+    wait_until,
+    write_bridge_config,
+)
+from conftest import Observer, free_port
+
+from bridge.errors import CodecError
+from bridge.escs import ckesc
+
+INPUT_TIMEOUT_S = 0.100  # the bridges' input_timeout_ms
+PERIOD_S = 1 / 400  # CKESC at 400 Hz
+LAG_S = 0.020  # see the module's lag rule: 8 output periods, for a loaded 2-core machine
+STALE_MARGIN_S = 0.030
+STREAM_RATE_HZ = 200.0  # what the bridges ask PX4 for
+MIN_STREAM_HZ = 80.0  # well above what input_timeout_ms needs; PX4's SIH gives ~120 Hz
+SOURCES = ("aos", "sor")
+SOURCE_FLAG = {"aos": "actuator_output_status", "sor": "servo_output_raw"}
+COMPONENT = {"aos": 191, "sor": 192}  # one component per bridge, told apart at the GCS
+HOVER_S = 3.0
+AFTER_STALL_S = 2.0
+STALL_S = 1.0
+
+SOR_SLOW_STREAM = pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "bridge/mavlink_in.py asks for SERVO_OUTPUT_RAW before PX4's first packet reaches the "
+        "udpin link (lost) and never again while PX4's default 10 Hz stream arrives; at 10 Hz "
+        "an output is often ~100 ms old when the next one comes (input_timeout_ms 100): "
+        "one-tick all-zero frames while armed. The stream-request fix is pending"
+    ),
+)
+CLOCK_AFTER_STALL = pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "PX4 SITL runs on a lockstep clock that stands still while the process is stopped, so "
+        "after a 1 s SIGSTOP its time_usec stays 1 s behind ours; bridge/mavlink/clock.py lets "
+        "its offset estimate rise only 2 % of remote time (max_drift) and re-seeds only when "
+        "the remote time jumped too, so every later output looks ~1 s old: FAILSAFE input "
+        "stale for ~45 s of flight"
+    ),
+)
+
+
+# -- the flight ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Side:
+    """One bridge's chain."""
+
+    name: str
+    can_port: int
+    bridge_port: int
+    observer: Observer
+    tap: UdpTap
+    bridge: LoggedProcess | None = None
+    sim: LoggedProcess | None = None
+
+
+@dataclass
+class Flight:
+    px4: Px4
+    gcs: GroundStation
+    sides: dict[str, Side]
+    events: dict[str, float] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+
+@pytest.fixture(scope="session")
+def px4_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    build, why = find_build()
+    if build is None:
+        pytest.skip(why)
+    return extract_build(build, tmp_path_factory.mktemp("px4-build"))
+
+
+def _armed(gcs: GroundStation, system: int, after: float) -> bool | None:
+    beats = gcs.received("HEARTBEAT", after=after, sender=(system, 1))
+    if not beats:
+        return None
+    return bool(beats[-1][1].base_mode & dialect.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def _altitude_m(gcs: GroundStation, system: int) -> float:
+    positions = gcs.received("GLOBAL_POSITION_INT", sender=(system, 1))
+    return float(positions[-1][1].relative_alt) / 1000 if positions else math.nan
+
+
+@pytest.fixture(scope="module")
+def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Flight]:
+    started = time.monotonic()
+    work = tmp_path_factory.mktemp("px4-flight")
+    with px4_instance(px4_root, work) as (px4, claim):
+        ports = claim.ports
+        sides: dict[str, Side] = {}
+        gcs: GroundStation | None = None
+        try:
+            for name in SOURCES:
+                can_port, bridge_port = free_port(), free_port()
+                listen = ports.onboard_remote if name == "aos" else free_port()
+                side = Side(
+                    name,
+                    can_port,
+                    bridge_port,
+                    Observer(can_port),
+                    UdpTap(listen, bridge_port, work / f"tap-{name}.bin"),
+                )
+                sides[name] = side
+                side.sim = start_sim_escs(can_port, work / f"sim-{name}.log")
+                config = write_bridge_config(
+                    work / f"bridge-{name}.toml",
+                    source=SOURCE_FLAG[name],
+                    autopilot_system_id=px4.system_id,
+                    component_id=COMPONENT[name],
+                    stream_rate_hz=STREAM_RATE_HZ,
+                    input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
+                )
+                # Nobody subscribes to Zenoh here: off, to leave the 2 cores to the flight.
+                side.bridge = start_bridge(
+                    config,
+                    f"udpin:127.0.0.1:{bridge_port}",
+                    can_port,
+                    work / f"bridge-{name}.log",
+                    "--no-zenoh",
+                )
+            # The bridges (and the companion computer) are up before the autopilot.
+            time.sleep(1.0)
+            px4.start()
+            fl = Flight(px4, GroundStation(f"udpout:127.0.0.1:{ports.gcs_local}"), sides)
+            gcs = fl.gcs
+            ev = fl.events
+            ev["px4_start"] = time.monotonic()
+            ev["px4_ready"] = px4.wait_ready()
+            px4.add_onboard_link(free_port(), sides["sor"].tap.listen_port)
+            _fly(fl)
+            fl.wall_s = time.monotonic() - started
+            yield fl
+        finally:
+            if gcs is not None:
+                gcs.close()
+            px4.stop()
+            for side in sides.values():
+                for proc in (side.bridge, side.sim):
+                    if proc is not None:
+                        proc.stop()
+                side.tap.close()
+                side.observer.close()
+
+
+def _fly(fl: Flight) -> None:
+    """Arm, take off, hover, stall PX4 for 1 s, hover, land, disarm; kill, restart, arm."""
+    px4, gcs, ev = fl.px4, fl.gcs, fl.events
+    target = (px4.system_id, 1)
+    sysid = px4.system_id
+    wait_until(lambda: _armed(gcs, sysid, 0) is not None, 15, "PX4's HEARTBEAT at the GCS")
+    # Both bridges get their stream before the flight starts (each asks for it).
+    for side in fl.sides.values():
+
+        def has_outputs(side: Side = side) -> bool:
+            return _outputs(side, sysid)[0] != []
+
+        wait_until(has_outputs, 15, f"{side.name}: PX4's outputs at the bridge")
+    time.sleep(1.5)  # a stream request that is honoured shows its rate within a second
+    ev["arm_cmd"] = time.monotonic()
+    ev["armed_ack"] = gcs.command(target, 400, [1], 20, "arm")
+    ev["takeoff_ack"] = gcs.command(
+        target, 22, [0, 0, 0, math.nan, math.nan, math.nan, math.nan], 10, "takeoff"
+    )
+    wait_until(lambda: _altitude_m(gcs, sysid) > 2.0, 20, "PX4 above 2 m after takeoff")
+    ev["hover"] = time.monotonic()
+    time.sleep(HOVER_S)
+    ev["stall"] = time.monotonic()
+    px4.pause()
+    time.sleep(STALL_S)
+    px4.resume()
+    ev["resume"] = time.monotonic()
+    time.sleep(AFTER_STALL_S)
+    ev["land_ack"] = gcs.command(
+        target, 21, [0, 0, 0, math.nan, math.nan, math.nan, math.nan], 10, "land"
+    )
+    ev["disarmed"] = wait_until(
+        lambda: _armed(gcs, sysid, ev["land_ack"]) is False, 40, "PX4 disarmed after landing"
+    )
+    time.sleep(0.5)
+    ev["kill"] = time.monotonic()
+    px4.kill()
+    time.sleep(1.0)
+    ev["restart"] = time.monotonic()
+    px4.start()
+    ev["restart_ready"] = px4.wait_ready()
+    px4.restore_links()
+    wait_until(lambda: _armed(gcs, sysid, ev["restart"]) is not None, 15, "HEARTBEAT after restart")
+    time.sleep(1.5)
+    ev["rearm_ack"] = gcs.command(target, 400, [1], 20, "arm after the restart")
+    time.sleep(2.0)
+    ev["redisarm_ack"] = gcs.command(target, 400, [0], 10, "disarm after the restart")
+    time.sleep(0.5)
+    ev["end"] = time.monotonic()
+
+
+# -- reading the records ------------------------------------------------------------------------
+
+
+def _outputs(side: Side, sysid: int) -> tuple[list[float], list[tuple[float, ...]]]:
+    """The tap's motor outputs 1..4 of this side's source, from PX4's autopilot component."""
+    times: list[float] = []
+    values: list[tuple[float, ...]] = []
+    for t, m in side.tap.poll():
+        if (m.get_srcSystem(), m.get_srcComponent()) != (sysid, 1):
+            continue
+        kind = m.get_type()
+        if side.name == "aos" and kind == "ACTUATOR_OUTPUT_STATUS":
+            values.append(tuple(float(v) for v in m.actuator[:4]))
+        elif side.name == "sor" and kind == "SERVO_OUTPUT_RAW" and m.port == 0:
+            values.append(tuple(float(m.__dict__[f"servo{i}_raw"]) for i in range(1, 5)))
+        else:
+            continue
+        times.append(t)
+    return times, values
+
+
+def _heartbeats(side: Side, sysid: int) -> tuple[list[float], list[bool]]:
+    times: list[float] = []
+    armed: list[bool] = []
+    for t, m in side.tap.poll():
+        if m.get_type() == "HEARTBEAT" and (m.get_srcSystem(), m.get_srcComponent()) == (
+            sysid,
+            1,
+        ):
+            times.append(t)
+            armed.append(bool(m.base_mode & dialect.MAV_MODE_FLAG_SAFETY_ARMED))
+    return times, armed
+
+
+def throttle(pwm: float) -> int:
+    """The passthrough mixer's scaling onto CKESC's 0..2000 (the driver rounds half up)."""
+    fraction = (pwm - 1000.0) * (1.0 / 1000.0)
+    fraction = 0.0 if fraction < 0.0 else 1.0 if fraction > 1.0 else fraction
+    return int(fraction * 2000 + 0.5)
+
+
+def _commands(observer: Observer) -> list[tuple[float, tuple[int, ...]]]:
+    out = []
+    for ts, msg in list(observer.frames):
+        th = _throttles(msg)
+        if th is not None:
+            out.append((ts, th))
+    out.sort(key=lambda x: x[0])
+    return out
+
+
+def _throttles(msg: can.Message) -> tuple[int, ...] | None:
+    try:
+        frame = ckesc.decode(msg)
+    except CodecError:
+        return None
+    if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+        return None
+    return frame.message.throttles
+
+
+@dataclass
+class Verdict:
+    """Each command frame of one side judged by the lag rule."""
+
+    frames: int = 0
+    nonzero: int = 0
+    mismatches: list[str] = field(default_factory=list)
+    blips: list[float] = field(default_factory=list)
+    newest: int = 0
+    """Tracking frames equal to the newest output forwarded at least a period before them."""
+    tracking: int = 0
+    """Frames while armed (HEARTBEAT) with fresh, non-zero output: where tracking is judged."""
+
+
+def judge(
+    side: Side, sysid: int, start: float, end: float, skip: list[tuple[float, float]]
+) -> Verdict:
+    """Apply the lag rule to every frame in [start, end], except in the ``skip`` windows
+    (where the bridge is expected to go safe: judged by the stall and restart checks)."""
+    times, values = _outputs(side, sysid)
+    beat_times, beat_armed = _heartbeats(side, sysid)
+    expected = [tuple(throttle(v) for v in vals) for vals in values]
+    verdict = Verdict()
+    for t, th in _commands(side.observer):
+        if not start <= t <= end or any(a <= t <= b for a, b in skip):
+            continue
+        verdict.frames += 1
+        verdict.nonzero += any(th)
+        k = bisect.bisect_right(times, t + 0.001) - 1  # 1 ms for the two clocks' stamps
+        j = max(0, bisect.bisect_right(times, t - LAG_S) - 1)
+        zero = not any(th)
+        if k < 0:
+            if not zero:
+                verdict.mismatches.append(f"{t:.3f}: {th} before any output")
+            continue
+        eligible = expected[j : k + 1]
+        matched = th[:4] in eligible
+        b_now = bisect.bisect_right(beat_times, t) - 1
+        b_lag = bisect.bisect_right(beat_times, t - LAG_S) - 1
+        armed_now = b_now >= 0 and beat_armed[b_now]
+        armed_lag = b_lag >= 0 and beat_armed[b_lag]
+        fresh = t - times[k] < INPUT_TIMEOUT_S - STALE_MARGIN_S
+        must_track = armed_now and armed_lag and fresh and all(any(e) for e in eligible)
+        if must_track:
+            verdict.tracking += 1
+            p = max(0, bisect.bisect_right(times, t - PERIOD_S) - 1)
+            verdict.newest += th[:4] in expected[p : k + 1]
+        if matched:
+            continue
+        if zero and not must_track:
+            continue  # safe while disarmed or stale: allowed
+        if zero:
+            verdict.blips.append(t)
+        verdict.mismatches.append(
+            f"{t:.3f}: {th} not in {sorted(set(eligible))} "
+            f"(outputs {values[j]}..{values[k]}, armed {armed_lag}/{armed_now}, fresh {fresh})"
+        )
+    return verdict
+
+
+# -- measurements ------------------------------------------------------------------------------
+
+REPORT: dict[str, Any] = {}
+
+
+def _rate_hz(times: list[float], start: float, end: float) -> float:
+    n = sum(1 for t in times if start <= t <= end)
+    return n / (end - start) if end > start else 0.0
+
+
+def _first_frame(side: Side, after: float, want_nonzero: bool) -> float | None:
+    for t, th in _commands(side.observer):
+        if t >= after and bool(any(th)) == want_nonzero:
+            return t
+    return None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _print_report() -> Iterator[None]:
+    yield
+    if not REPORT:
+        return
+    print("\nPX4 SITL measurements:")
+    for key, value in REPORT.items():
+        print(f"  {key}: {value}")
+    target = os.environ.get("ESC_BRIDGE_SITL_REPORT")
+    if target:
+        with open(target, "a") as f:
+            f.write(json.dumps(REPORT) + "\n")
+
+
+# -- the checks ------------------------------------------------------------------------------
+
+
+def _flight_window(fl: Flight) -> tuple[float, float, list[tuple[float, float]]]:
+    ev = fl.events
+    # The stall's aftermath is judged by the stall checks alone: after it the bridge judges
+    # PX4's outputs stale until the landing (see CLOCK_AFTER_STALL); the restart by its own.
+    skip = [(ev["stall"], ev["restart_ready"] + 2.0)]
+    return ev["px4_ready"], ev["end"], skip
+
+
+@pytest.mark.parametrize(
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+)
+def test_stream_rate_is_near_the_asked_one(flight: Flight, name: str) -> None:
+    """The bridge gets the motor outputs at a rate input_timeout_ms can live with, before
+    and after the restart."""
+    side, ev = flight.sides[name], flight.events
+    times, _ = _outputs(side, flight.px4.system_id)
+    before = _rate_hz(times, ev["arm_cmd"], ev["kill"])
+    after = _rate_hz(times, ev["rearm_ack"], ev["end"])
+    REPORT[f"{name}: output rate at the bridge, Hz (flight / after restart)"] = (
+        f"{before:.0f} / {after:.0f}"
+    )
+    assert before >= MIN_STREAM_HZ, f"{name}: {before:.1f} Hz in flight (asked {STREAM_RATE_HZ})"
+    assert after >= MIN_STREAM_HZ, f"{name}: {after:.1f} Hz after the restart"
+
+
+@pytest.mark.parametrize(
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+)
+def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
+    side = flight.sides[name]
+    start, end, skip = _flight_window(flight)
+    verdict = judge(side, flight.px4.system_id, start, end, skip)
+    share = 100 * verdict.newest / verdict.tracking if verdict.tracking else 0.0
+    REPORT[f"{name}: frames judged / non-zero / tracking"] = (
+        f"{verdict.frames} / {verdict.nonzero} / {verdict.tracking}"
+    )
+    REPORT[f"{name}: tracking frames equal to the newest output (>= 1 period old)"] = (
+        f"{share:.2f} %"
+    )
+    REPORT[f"{name}: all-zero frames while armed with fresh input"] = len(verdict.blips)
+    # Not vacuous: the motors ran through a flight (~15 s armed at 400 Hz).
+    assert verdict.tracking > 2000, f"{name}: only {verdict.tracking} frames to judge"
+    assert not verdict.mismatches, (
+        f"{name}: {len(verdict.mismatches)} of {verdict.frames} frames break the lag rule, "
+        f"first: {verdict.mismatches[:5]}"
+    )
+
+
+@pytest.mark.parametrize(
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+)
+def test_no_zero_frames_while_armed_with_fresh_input(flight: Flight, name: str) -> None:
+    start, end, skip = _flight_window(flight)
+    verdict = judge(flight.sides[name], flight.px4.system_id, start, end, skip)
+    assert verdict.tracking > 2000, f"{name}: only {verdict.tracking} frames to judge"
+    assert verdict.blips == [], f"{name}: all-zero frames at {verdict.blips[:10]}"
+
+
+def _safe_after_loss(side: Side, sysid: int, lost_at: float) -> tuple[float, float]:
+    """(the last output forwarded before ``lost_at``, the first all-zero frame after it)."""
+    times, _ = _outputs(side, sysid)
+    i = bisect.bisect_right(times, lost_at + 0.005) - 1
+    assert i >= 0, f"{side.name}: no output before {lost_at}"
+    last = times[i]
+    safe = _first_frame(side, last, want_nonzero=False)
+    assert safe is not None, f"{side.name}: no safe frame after the last output"
+    return last, safe
+
+
+@pytest.mark.parametrize("name", SOURCES)
+def test_stall_of_px4_goes_safe_in_time(flight: Flight, name: str) -> None:
+    side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
+    last, safe = _safe_after_loss(side, sysid, ev["stall"])
+    deadline = INPUT_TIMEOUT_S + 2 * PERIOD_S
+    REPORT[f"{name}: SIGSTOP: safe after the last output, ms"] = round((safe - last) * 1000, 1)
+    assert safe - last <= deadline, (
+        f"{name}: first safe frame {1000 * (safe - last):.1f} ms after PX4's last output "
+        f"(deadline {1000 * deadline:.0f} ms)"
+    )
+    # Nothing but safe frames until PX4 sends again.
+    times, _ = _outputs(side, sysid)
+    first_new = times[bisect.bisect_right(times, ev["resume"] - 0.01)]
+    during = [th for t, th in _commands(side.observer) if safe <= t < first_new]
+    assert during and not any(any(th) for th in during), f"{name}: non-zero during the stall"
+
+
+@pytest.mark.parametrize("name", SOURCES)
+@CLOCK_AFTER_STALL
+def test_motors_run_again_after_the_stall(flight: Flight, name: str) -> None:
+    side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
+    times, _ = _outputs(side, sysid)
+    first_new = times[bisect.bisect_right(times, ev["resume"] - 0.01)]
+    running = _first_frame(side, first_new, want_nonzero=True)
+    assert running is not None, f"{name}: the motors never ran again after SIGCONT"
+    REPORT[f"{name}: SIGCONT: running again after PX4's first new output, ms"] = round(
+        (running - first_new) * 1000, 1
+    )
+    assert running - first_new <= 0.5, (
+        f"{name}: running again {running - first_new:.3f} s after PX4's first new output"
+    )
+
+
+@pytest.mark.parametrize("name", SOURCES)
+def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) -> None:
+    side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
+    # Disarmed at the kill, so the frames are safe already; the bridge must stay so, alive.
+    assert side.bridge is not None and side.bridge.alive(), f"{name}: the bridge died"
+    nonzero_while_down = [
+        t for t, th in _commands(side.observer) if ev["kill"] <= t <= ev["rearm_ack"] and any(th)
+    ]
+    assert nonzero_while_down == [], f"{name}: non-zero frames while PX4 was down or disarmed"
+    times, values = _outputs(side, sysid)
+    after = [t for t in times if t >= ev["restart"]]
+    assert after, f"{name}: no output reached the bridge after the restart"
+    REPORT[f"{name}: restart: first output at the bridge after PX4's restart, s"] = round(
+        after[0] - ev["restart"], 2
+    )
+    # Tracking again: the re-armed idle outputs go out as commands.
+    i = next(
+        (
+            i
+            for i, t in enumerate(times)
+            if t >= ev["restart"] and any(throttle(v) for v in values[i])
+        ),
+        None,
+    )
+    assert i is not None, f"{name}: PX4 never armed its outputs after the restart"
+    running = _first_frame(side, times[i], want_nonzero=True)
+    assert running is not None, f"{name}: no non-zero frame after the re-arm"
+    REPORT[f"{name}: restart: arming delay (outputs armed -> first command), ms"] = round(
+        (running - times[i]) * 1000
+    )
+    assert running - times[i] <= 1.5, f"{name}: re-armed outputs took {running - times[i]:.2f} s"
+
+
+@pytest.mark.parametrize("name", SOURCES)
+def test_arming_reaches_the_motors(flight: Flight, name: str) -> None:
+    """Arming: from PX4's outputs arming to the first non-zero command; bounded by its
+    1 Hz HEARTBEAT today (the issue asks for a few ms)."""
+    side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
+    times, values = _outputs(side, sysid)
+    i = next(
+        i for i, t in enumerate(times) if t >= ev["arm_cmd"] and any(throttle(v) for v in values[i])
+    )
+    beat_times, beat_armed = _heartbeats(side, sysid)
+    hb = next(t for t, a in zip(beat_times, beat_armed, strict=True) if a and t >= ev["arm_cmd"])
+    running = _first_frame(side, times[i], want_nonzero=True)
+    assert running is not None, f"{name}: the motors never ran after arming"
+    REPORT[f"{name}: arming: outputs armed -> armed HEARTBEAT / first command, ms"] = (
+        f"{(hb - times[i]) * 1000:.0f} / {(running - times[i]) * 1000:.0f}"
+    )
+    assert running - times[i] <= 1.2, f"{name}: {running - times[i]:.2f} s to the first command"
+    assert running >= hb - 0.001, f"{name}: the motors ran before PX4 said it was armed"
+
+
+@pytest.mark.parametrize("name", SOURCES)
+def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> None:
+    """ESC_STATUS and ESC_INFO of each bridge, forwarded by PX4 to its GCS link, carry the
+    simulated ESCs' values (MSG1 rpm, MSG2 volts as they were on the bus)."""
+    side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
+    sender = (sysid, COMPONENT[name])
+    statuses = flight.gcs.received("ESC_STATUS", after=ev["hover"], sender=sender)
+    statuses = [(t, m) for t, m in statuses if t <= ev["land_ack"]]
+    infos = flight.gcs.received("ESC_INFO", after=ev["hover"], sender=sender)
+    telemetry = flight.gcs.received("ESC_TELEMETRY_1_TO_4", sender=sender)
+    hover_s = ev["land_ack"] - ev["hover"]
+    REPORT[f"{name}: at the GCS in flight: ESC_STATUS / ESC_INFO per s; ESC_TELEMETRY_1_TO_4"] = (
+        f"{len(statuses) / hover_s:.1f} / {len(infos) / hover_s:.1f}; {len(telemetry)}"
+    )
+    assert len(statuses) >= 2 * hover_s, f"{name}: {len(statuses)} ESC_STATUS in {hover_s:.0f} s"
+    assert infos, f"{name}: no ESC_INFO at the GCS"
+    for _, info in infos:
+        assert info.count == 4 and info.info == 0b1111, f"{name}: {info}"
+        assert list(info.failure_flags[:4]) == [0, 0, 0, 0], f"{name}: {info}"
+    # Each rpm at the GCS is one the ESC reported on the bus shortly before.
+    reported: dict[int, list[tuple[float, int]]] = {n: [] for n in range(1, 5)}
+    for ts, msg in list(side.observer.frames):
+        try:
+            frame = ckesc.decode(msg)
+        except CodecError:
+            continue
+        msg1 = frame is not None and isinstance(frame.message, ckesc.Msg1)
+        if frame is not None and msg1 and frame.source_node in reported:
+            assert isinstance(frame.message, ckesc.Msg1)
+            reported[frame.source_node].append((ts, frame.message.speed_rpm))
+    spinning = 0
+    for t, status in statuses:
+        for i in range(4):
+            seen = {rpm for ts, rpm in reported[i + 1] if t - 1.0 <= ts <= t}
+            assert status.rpm[i] in seen, (
+                f"{name}: ESC {i + 1} rpm {status.rpm[i]} at the GCS, the ESC sent {sorted(seen)}"
+            )
+            spinning += status.rpm[i] > 1000
+    assert spinning >= len(statuses), f"{name}: the ESCs hardly spun in hover"
+
+
+def test_flight_wall_time(flight: Flight) -> None:
+    REPORT["PX4 flight fixture wall time, s"] = round(flight.wall_s, 1)
+    REPORT["events (s after PX4 start)"] = {
+        k: round(v - flight.events["px4_start"], 2) for k, v in flight.events.items()
+    }
+    assert flight.wall_s < 90, f"the flight took {flight.wall_s:.0f} s"
+
+
+def _median(xs: list[float]) -> float:
+    return statistics.median(xs) if xs else math.nan
