@@ -241,6 +241,7 @@ class UdpTap:
 
     def poll(self) -> list[tuple[float, Any]]:
         """Parse what was recorded since the last call; all messages so far."""
+        data = b""  # the tap's process may not have created the file yet
         with contextlib.suppress(FileNotFoundError), self.record.open("rb") as f:
             f.seek(self._offset)
             data = f.read()
