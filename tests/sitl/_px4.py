@@ -388,6 +388,7 @@ DEFAULT_BUILD = ROOT.parent / "shared" / "sitl" / "px4" / "px4-sitl-v1.16.0-sih.
 # remote ports, so only 0..9 can run side by side.
 _PORT_BASES = ((14580, 14540), (18570, None), (14280, 14030), (13030, 13280), (19450, 19410))
 MAX_INSTANCES = 10
+PAYLOAD_PORT_BASE = 14280
 PX4_READY = "Ready for takeoff"
 
 
@@ -548,9 +549,14 @@ class Px4:
         """Another onboard MAVLink link (like its own: 4 MB/s, forwarding on) from
         ``local_port`` to 127.0.0.1:``remote_port``; added again after every restart."""
         self._links.append((local_port, remote_port))
-        self._start_link(local_port, remote_port)
+        self._start_link(len(self._links) - 1)
 
-    def _start_link(self, local_port: int, remote_port: int) -> None:
+    def _start_link(self, index: int) -> None:
+        if index == 1:
+            # PX4 runs at most six MAVLink instances and SITL starts five; a second link of
+            # ours takes the slot of the camera's payload link (unused with SIH).
+            self.shell("mavlink", "stop", "-u", str(PAYLOAD_PORT_BASE + self.instance))
+        local_port, remote_port = self._links[index]
         self.shell(
             "mavlink",
             "start",
@@ -566,8 +572,8 @@ class Px4:
         )
 
     def restore_links(self) -> None:
-        for local, remote in self._links:
-            self._start_link(local, remote)
+        for index in range(len(self._links)):
+            self._start_link(index)
 
     def pause(self) -> None:
         assert self.process is not None

@@ -58,29 +58,39 @@ from _px4 import (
 from conftest import Observer, free_port
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, ft
 
 INPUT_TIMEOUT_S = 0.100  # the bridges' input_timeout_ms
-PERIOD_S = 1 / 400  # CKESC at 400 Hz
 LAG_S = 0.020  # see the module's lag rule: 8 output periods, for a loaded 2-core machine
 STALE_MARGIN_S = 0.030
 STREAM_RATE_HZ = 200.0  # what the bridges ask PX4 for
 MIN_STREAM_HZ = 80.0  # well above what input_timeout_ms needs; PX4's SIH gives ~120 Hz
-SOURCES = ("aos", "sor")
-SOURCE_FLAG = {"aos": "actuator_output_status", "sor": "servo_output_raw"}
-COMPONENT = {"aos": 191, "sor": 192}  # one component per bridge, told apart at the GCS
+SIDES = ("aos", "sor", "ft")
+SOURCE_FLAG = {
+    "aos": "actuator_output_status",
+    "sor": "servo_output_raw",
+    "ft": "actuator_output_status",
+}
+PROTOCOL = {"aos": "ckesc", "sor": "ckesc", "ft": "ft"}
+COMPONENT = {"aos": 191, "sor": 192, "ft": 193}  # one component per bridge, told apart at the GCS
+FT_MAX_CURRENT_A = 20.0  # the bridge's default ft_max_current_a
+FT_CURRENT_STEPS = 100_000  # FT currents travel in 1e-5 A
+FT_POLE_PAIRS = 7  # the bridge's default: ESC_STATUS rpm = FT erpm / 7
 HOVER_S = 3.0
 AFTER_STALL_S = 2.0
 STALL_S = 1.0
 
-SOR_SLOW_STREAM = pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "bridge/mavlink_in.py asks for SERVO_OUTPUT_RAW before PX4's first packet reaches the "
-        "udpin link (lost) and never again while PX4's default 10 Hz stream arrives; at 10 Hz "
-        "an output is often ~100 ms old when the next one comes (input_timeout_ms 100): "
-        "one-tick all-zero frames while armed. The stream-request fix is pending"
-    ),
+_SLOW_STREAM = (
+    "bridge/mavlink_in.py asks for SERVO_OUTPUT_RAW before PX4's first packet reaches the udpin "
+    "link (lost) and never again while PX4's default 10 Hz stream arrives; the stream-request "
+    "fix (ask until acknowledged and near the asked rate) is pending"
+)
+SOR_SLOW_STREAM = pytest.mark.xfail(strict=True, reason=_SLOW_STREAM)
+# At 10 Hz an output is often ~100 ms old when the next one comes (input_timeout_ms 100), so
+# one-tick all-zero frames while armed come at random: most flights have a few, some none.
+# Not strict, or the lucky flights would fail as XPASS(strict).
+SOR_SLOW_STREAM_BLIPS = pytest.mark.xfail(
+    strict=False, reason=_SLOW_STREAM + "; at 10 Hz: one-tick all-zero frames while armed"
 )
 CLOCK_AFTER_STALL = pytest.mark.xfail(
     strict=True,
@@ -106,8 +116,17 @@ class Side:
     bridge_port: int
     observer: Observer
     tap: UdpTap
+    protocol: str = "ckesc"
     bridge: LoggedProcess | None = None
+    frozen: bool = False
+    """The flight is over: what was recorded up to now is all the checks read (cached)."""
+    cache: dict[str, Any] = field(default_factory=dict)
     sim: LoggedProcess | None = None
+
+    @property
+    def period_s(self) -> float:
+        """The output period of each ESC: CKESC 400 Hz, FT 100 Hz per ESC (the defaults)."""
+        return 1 / 100 if self.protocol == "ft" else 1 / 400
 
 
 @dataclass
@@ -148,7 +167,7 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
         sides: dict[str, Side] = {}
         gcs: GroundStation | None = None
         try:
-            for name in SOURCES:
+            for name in SIDES:
                 can_port, bridge_port = free_port(), free_port()
                 listen = ports.onboard_remote if name == "aos" else free_port()
                 side = Side(
@@ -157,14 +176,16 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
                     bridge_port,
                     Observer(can_port),
                     UdpTap(listen, bridge_port, work / f"tap-{name}.bin"),
+                    PROTOCOL[name],
                 )
                 sides[name] = side
-                side.sim = start_sim_escs(can_port, work / f"sim-{name}.log")
+                side.sim = start_sim_escs(can_port, work / f"sim-{name}.log", PROTOCOL[name])
                 config = write_bridge_config(
                     work / f"bridge-{name}.toml",
                     source=SOURCE_FLAG[name],
                     autopilot_system_id=px4.system_id,
                     component_id=COMPONENT[name],
+                    protocol=PROTOCOL[name],
                     stream_rate_hz=STREAM_RATE_HZ,
                     input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
                 )
@@ -184,8 +205,12 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
             ev = fl.events
             ev["px4_start"] = time.monotonic()
             ev["px4_ready"] = px4.wait_ready()
-            px4.add_onboard_link(free_port(), sides["sor"].tap.listen_port)
+            # PX4's own onboard link serves "aos"; the others get one each.
+            for name in SIDES[1:]:
+                px4.add_onboard_link(free_port(), sides[name].tap.listen_port)
             _fly(fl)
+            for side in sides.values():
+                side.frozen = True
             fl.wall_s = time.monotonic() - started
             yield fl
         finally:
@@ -259,15 +284,23 @@ def _fly(fl: Flight) -> None:
 
 def _outputs(side: Side, sysid: int) -> tuple[list[float], list[tuple[float, ...]]]:
     """The tap's motor outputs 1..4 of this side's source, from PX4's autopilot component."""
+    if side.frozen and "outputs" in side.cache:
+        return side.cache["outputs"]  # type: ignore[no-any-return]
+    side.cache["outputs"] = result = _read_outputs(side, sysid)
+    return result
+
+
+def _read_outputs(side: Side, sysid: int) -> tuple[list[float], list[tuple[float, ...]]]:
     times: list[float] = []
     values: list[tuple[float, ...]] = []
     for t, m in side.tap.poll():
         if (m.get_srcSystem(), m.get_srcComponent()) != (sysid, 1):
             continue
         kind = m.get_type()
-        if side.name == "aos" and kind == "ACTUATOR_OUTPUT_STATUS":
+        source = SOURCE_FLAG[side.name]
+        if source == "actuator_output_status" and kind == "ACTUATOR_OUTPUT_STATUS":
             values.append(tuple(float(v) for v in m.actuator[:4]))
-        elif side.name == "sor" and kind == "SERVO_OUTPUT_RAW" and m.port == 0:
+        elif source == "servo_output_raw" and kind == "SERVO_OUTPUT_RAW" and m.port == 0:
             values.append(tuple(float(m.__dict__[f"servo{i}_raw"]) for i in range(1, 5)))
         else:
             continue
@@ -276,6 +309,13 @@ def _outputs(side: Side, sysid: int) -> tuple[list[float], list[tuple[float, ...
 
 
 def _heartbeats(side: Side, sysid: int) -> tuple[list[float], list[bool]]:
+    if side.frozen and "heartbeats" in side.cache:
+        return side.cache["heartbeats"]  # type: ignore[no-any-return]
+    side.cache["heartbeats"] = result = _read_heartbeats(side, sysid)
+    return result
+
+
+def _read_heartbeats(side: Side, sysid: int) -> tuple[list[float], list[bool]]:
     times: list[float] = []
     armed: list[bool] = []
     for t, m in side.tap.poll():
@@ -288,24 +328,52 @@ def _heartbeats(side: Side, sysid: int) -> tuple[list[float], list[bool]]:
     return times, armed
 
 
-def throttle(pwm: float) -> int:
-    """The passthrough mixer's scaling onto CKESC's 0..2000 (the driver rounds half up)."""
+def _fraction(pwm: float) -> float:
+    """The passthrough mixer: PWM 1000..2000 µs onto 0..1, limited."""
     fraction = (pwm - 1000.0) * (1.0 / 1000.0)
-    fraction = 0.0 if fraction < 0.0 else 1.0 if fraction > 1.0 else fraction
-    return int(fraction * 2000 + 0.5)
+    return 0.0 if fraction < 0.0 else 1.0 if fraction > 1.0 else fraction
 
 
-def _commands(observer: Observer) -> list[tuple[float, tuple[int, ...]]]:
+def throttle(pwm: float) -> int:
+    """CKESC's RawCommand throttle 0..2000 for ``pwm`` (the driver rounds half up)."""
+    return int(_fraction(pwm) * 2000 + 0.5)
+
+
+def ft_current(pwm: float) -> int:
+    """FT current mode: the commanded current in the wire's 1e-5 A steps, at
+    ft_max_current_a (20 A) full scale."""
+    return round(_fraction(pwm) * FT_MAX_CURRENT_A * FT_CURRENT_STEPS)
+
+
+def expected_command(side: Side, pwm: tuple[float, ...]) -> tuple[int, ...]:
+    scale = ft_current if side.protocol == "ft" else throttle
+    return tuple(scale(v) for v in pwm)
+
+
+Command = tuple[int | None, ...]
+"""What one frame commands motors 1..4: a value per motor (CKESC throttle or FT current in
+1e-5 A steps), None for a motor the frame does not address (FT: one ESC per frame)."""
+
+
+def _commands(side: Side) -> list[tuple[float, Command]]:
+    """Every command frame the observer saw, in time order."""
+    if side.frozen and "commands" in side.cache:
+        return side.cache["commands"]  # type: ignore[no-any-return]
+    side.cache["commands"] = result = _read_commands(side)
+    return result
+
+
+def _read_commands(side: Side) -> list[tuple[float, Command]]:
     out = []
-    for ts, msg in list(observer.frames):
-        th = _throttles(msg)
-        if th is not None:
-            out.append((ts, th))
+    for ts, msg in list(side.observer.frames):
+        command = _ft_command(msg) if side.protocol == "ft" else _ckesc_command(msg)
+        if command is not None:
+            out.append((ts, command))
     out.sort(key=lambda x: x[0])
     return out
 
 
-def _throttles(msg: can.Message) -> tuple[int, ...] | None:
+def _ckesc_command(msg: can.Message) -> Command | None:
     try:
         frame = ckesc.decode(msg)
     except CodecError:
@@ -313,6 +381,29 @@ def _throttles(msg: can.Message) -> tuple[int, ...] | None:
     if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
         return None
     return frame.message.throttles
+
+
+def _ft_command(msg: can.Message) -> Command | None:
+    try:
+        frame = ft.decode(msg)
+    except CodecError:
+        return None
+    if frame is None or not isinstance(frame.message, ft.SetCurrent):
+        return None
+    if not 1 <= frame.esc_id <= 4:
+        return None
+    command: list[int | None] = [None] * 4
+    command[frame.esc_id - 1] = round(frame.message.current_a * FT_CURRENT_STEPS)
+    return tuple(command)
+
+
+def _matches(command: Command, expected: tuple[int, ...]) -> bool:
+    return all(v is None or v == e for v, e in zip(command, expected, strict=True))
+
+
+def _drives(command: Command, expected: tuple[int, ...]) -> bool:
+    """``expected`` is non-zero on a motor ``command`` addresses."""
+    return any(e for v, e in zip(command, expected, strict=True) if v is not None)
 
 
 @dataclass
@@ -336,9 +427,9 @@ def judge(
     (where the bridge is expected to go safe: judged by the stall and restart checks)."""
     times, values = _outputs(side, sysid)
     beat_times, beat_armed = _heartbeats(side, sysid)
-    expected = [tuple(throttle(v) for v in vals) for vals in values]
+    expected = [expected_command(side, vals) for vals in values]
     verdict = Verdict()
-    for t, th in _commands(side.observer):
+    for t, th in _commands(side):
         if not start <= t <= end or any(a <= t <= b for a, b in skip):
             continue
         verdict.frames += 1
@@ -351,17 +442,17 @@ def judge(
                 verdict.mismatches.append(f"{t:.3f}: {th} before any output")
             continue
         eligible = expected[j : k + 1]
-        matched = th[:4] in eligible
+        matched = any(_matches(th, e) for e in eligible)
         b_now = bisect.bisect_right(beat_times, t) - 1
         b_lag = bisect.bisect_right(beat_times, t - LAG_S) - 1
         armed_now = b_now >= 0 and beat_armed[b_now]
         armed_lag = b_lag >= 0 and beat_armed[b_lag]
         fresh = t - times[k] < INPUT_TIMEOUT_S - STALE_MARGIN_S
-        must_track = armed_now and armed_lag and fresh and all(any(e) for e in eligible)
+        must_track = armed_now and armed_lag and fresh and all(_drives(th, e) for e in eligible)
         if must_track:
             verdict.tracking += 1
-            p = max(0, bisect.bisect_right(times, t - PERIOD_S) - 1)
-            verdict.newest += th[:4] in expected[p : k + 1]
+            p = max(0, bisect.bisect_right(times, t - side.period_s) - 1)
+            verdict.newest += any(_matches(th, e) for e in expected[p : k + 1])
         if matched:
             continue
         if zero and not must_track:
@@ -386,7 +477,7 @@ def _rate_hz(times: list[float], start: float, end: float) -> float:
 
 
 def _first_frame(side: Side, after: float, want_nonzero: bool) -> float | None:
-    for t, th in _commands(side.observer):
+    for t, th in _commands(side):
         if t >= after and bool(any(th)) == want_nonzero:
             return t
     return None
@@ -418,7 +509,7 @@ def _flight_window(fl: Flight) -> tuple[float, float, list[tuple[float, float]]]
 
 
 @pytest.mark.parametrize(
-    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM), "ft"], ids=SIDES
 )
 def test_stream_rate_is_near_the_asked_one(flight: Flight, name: str) -> None:
     """The bridge gets the motor outputs at a rate input_timeout_ms can live with, before
@@ -434,7 +525,7 @@ def test_stream_rate_is_near_the_asked_one(flight: Flight, name: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM_BLIPS), "ft"], ids=SIDES
 )
 def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
     side = flight.sides[name]
@@ -448,6 +539,10 @@ def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
     )
     REPORT[f"{name}: frames breaking the lag rule"] = len(verdict.mismatches)
     REPORT[f"{name}: all-zero frames while armed with fresh input"] = len(verdict.blips)
+    origin = flight.events["px4_start"]
+    REPORT[f"{name}: the first of them, s after PX4 start"] = [
+        round(t - origin, 3) for t in verdict.blips[:5]
+    ]
     # Not vacuous: the motors ran through a flight (~15 s armed at 400 Hz).
     assert verdict.tracking > 2000, f"{name}: only {verdict.tracking} frames to judge"
     assert not verdict.mismatches, (
@@ -457,7 +552,7 @@ def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM)], ids=["aos", "sor"]
+    "name", ["aos", pytest.param("sor", marks=SOR_SLOW_STREAM_BLIPS), "ft"], ids=SIDES
 )
 def test_no_zero_frames_while_armed_with_fresh_input(flight: Flight, name: str) -> None:
     start, end, skip = _flight_window(flight)
@@ -477,15 +572,23 @@ def _safe_after_loss(side: Side, sysid: int, lost_at: float) -> tuple[float, flo
     assert i < len(times), f"{side.name}: no output around {lost_at}"
     last = times[i]
     assert last - lost_at < 0.1, f"{side.name}: PX4 sent on for {last - lost_at:.2f} s"
-    safe = _first_frame(side, last, want_nonzero=False)
-    assert safe is not None, f"{side.name}: no safe frame after the last output"
-    return last, safe
+    # Safe once every motor was sent zero (CKESC: one frame; FT: a frame per ESC).
+    first_zero: dict[int, float] = {}
+    for t, command in _commands(side):
+        if t >= last:
+            for motor, value in enumerate(command):
+                if value == 0:
+                    first_zero.setdefault(motor, t)
+        if len(first_zero) == 4:
+            break
+    assert len(first_zero) == 4, f"{side.name}: motors {first_zero} only were made safe"
+    return last, max(first_zero.values())
 
 
 def _running_before(side: Side, last: float, what: str) -> None:
     """The motors were running before PX4's last output before ``what`` (most frames of the
     0.3 s before it non-zero), so the check after it is not vacuous."""
-    before = [th for t, th in _commands(side.observer) if last - 0.3 <= t <= last]
+    before = [th for t, th in _commands(side) if last - 0.3 <= t <= last]
     running = sum(1 for th in before if any(th))
     assert before and running >= len(before) / 2, (
         f"{side.name}: the motors were not running before {what}: {running} of "
@@ -493,12 +596,12 @@ def _running_before(side: Side, last: float, what: str) -> None:
     )
 
 
-@pytest.mark.parametrize("name", SOURCES)
+@pytest.mark.parametrize("name", SIDES)
 def test_stall_of_px4_goes_safe_in_time(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
     last, safe = _safe_after_loss(side, sysid, ev["stall"])
     _running_before(side, last, "the stall")
-    deadline = INPUT_TIMEOUT_S + 2 * PERIOD_S
+    deadline = INPUT_TIMEOUT_S + 2 * side.period_s
     REPORT[f"{name}: SIGSTOP: safe after the last output, ms"] = round((safe - last) * 1000, 1)
     assert safe - last <= deadline, (
         f"{name}: first safe frame {1000 * (safe - last):.1f} ms after PX4's last output "
@@ -507,11 +610,11 @@ def test_stall_of_px4_goes_safe_in_time(flight: Flight, name: str) -> None:
     # Nothing but safe frames until PX4 sends again.
     times, _ = _outputs(side, sysid)
     first_new = times[bisect.bisect_right(times, ev["resume"] - 0.01)]
-    during = [th for t, th in _commands(side.observer) if safe <= t < first_new]
+    during = [th for t, th in _commands(side) if safe <= t < first_new]
     assert during and not any(any(th) for th in during), f"{name}: non-zero during the stall"
 
 
-@pytest.mark.parametrize("name", SOURCES)
+@pytest.mark.parametrize("name", SIDES)
 @CLOCK_AFTER_STALL
 def test_motors_run_again_after_the_stall(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
@@ -527,21 +630,19 @@ def test_motors_run_again_after_the_stall(flight: Flight, name: str) -> None:
     )
 
 
-@pytest.mark.parametrize("name", SOURCES)
+@pytest.mark.parametrize("name", SIDES)
 def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
     assert side.bridge is not None and side.bridge.alive(), f"{name}: the bridge died"
     last, safe = _safe_after_loss(side, sysid, ev["kill"])
     _running_before(side, last, "the kill")
-    deadline = INPUT_TIMEOUT_S + 2 * PERIOD_S
+    deadline = INPUT_TIMEOUT_S + 2 * side.period_s
     REPORT[f"{name}: kill: safe after the last output, ms"] = round((safe - last) * 1000, 1)
     assert safe - last <= deadline, (
         f"{name}: first safe frame {1000 * (safe - last):.1f} ms after PX4's last output "
         f"(deadline {1000 * deadline:.0f} ms)"
     )
-    nonzero_while_down = [
-        t for t, th in _commands(side.observer) if safe <= t <= ev["arm_cmd"] and any(th)
-    ]
+    nonzero_while_down = [t for t, th in _commands(side) if safe <= t <= ev["arm_cmd"] and any(th)]
     assert nonzero_while_down == [], f"{name}: non-zero frames while PX4 was down or disarmed"
     times, values = _outputs(side, sysid)
     after = [t for t in times if t >= ev["restart"]]
@@ -555,7 +656,7 @@ def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) ->
         (
             i
             for i, t in enumerate(times)
-            if t >= ev["restart"] and any(throttle(v) for v in values[i])
+            if t >= ev["restart"] and any(expected_command(side, values[i]))
         ),
         None,
     )
@@ -568,7 +669,7 @@ def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) ->
     assert running - times[i] <= 1.5, f"{name}: re-armed outputs took {running - times[i]:.2f} s"
 
 
-@pytest.mark.parametrize("name", SOURCES)
+@pytest.mark.parametrize("name", SIDES)
 def test_arming_reaches_the_motors(flight: Flight, name: str) -> None:
     """Arming (the first, before the kill): from PX4's outputs arming to the first non-zero
     command; bounded by its 1 Hz HEARTBEAT today (the issue asks for a few ms)."""
@@ -576,7 +677,7 @@ def test_arming_reaches_the_motors(flight: Flight, name: str) -> None:
     times, values = _outputs(side, sysid)
     armed_at = ev["ground_arm_cmd"]
     i = next(
-        i for i, t in enumerate(times) if t >= armed_at and any(throttle(v) for v in values[i])
+        i for i, t in enumerate(times) if t >= armed_at and any(expected_command(side, values[i]))
     )
     beat_times, beat_armed = _heartbeats(side, sysid)
     hb = next(t for t, a in zip(beat_times, beat_armed, strict=True) if a and t >= armed_at)
@@ -588,14 +689,18 @@ def test_arming_reaches_the_motors(flight: Flight, name: str) -> None:
     REPORT[f"{name}: arming: outputs armed -> first non-zero command, ms"] = round(
         (running - times[i]) * 1000
     )
-    assert running - times[i] <= 1.2, f"{name}: {running - times[i]:.2f} s to the first command"
+    REPORT[f"{name}: arming: armed HEARTBEAT at the tap -> first non-zero command, ms"] = round(
+        (running - hb) * 1000
+    )
+    # PX4's HEARTBEAT comes once a second (the frames after it are judged by the lag rule).
+    assert running - times[i] <= 1.5, f"{name}: {running - times[i]:.2f} s to the first command"
     assert running >= hb - 0.001, f"{name}: the motors ran before PX4 said it was armed"
 
 
-@pytest.mark.parametrize("name", SOURCES)
+@pytest.mark.parametrize("name", SIDES)
 def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> None:
     """ESC_STATUS and ESC_INFO of each bridge, forwarded by PX4 to its GCS link, carry the
-    simulated ESCs' values (MSG1 rpm, MSG2 volts as they were on the bus)."""
+    simulated ESCs' values (rpm and volts as they were on the bus)."""
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
     sender = (sysid, COMPONENT[name])
     statuses = flight.gcs.received("ESC_STATUS", after=ev["hover"], sender=sender)
@@ -621,26 +726,52 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
     for _, info in infos:
         assert info.count == 4 and info.info == 0b1111, f"{name}: {info}"
         assert list(info.failure_flags[:4]) == [0, 0, 0, 0], f"{name}: {info}"
-    # Each rpm at the GCS is one the ESC reported on the bus shortly before.
-    reported: dict[int, list[tuple[float, int]]] = {n: [] for n in range(1, 5)}
-    for ts, msg in list(side.observer.frames):
-        try:
-            frame = ckesc.decode(msg)
-        except CodecError:
-            continue
-        msg1 = frame is not None and isinstance(frame.message, ckesc.Msg1)
-        if frame is not None and msg1 and frame.source_node in reported:
-            assert isinstance(frame.message, ckesc.Msg1)
-            reported[frame.source_node].append((ts, frame.message.speed_rpm))
+    # Each rpm and voltage at the GCS is one the ESC reported on the bus shortly before.
+    rpms, volts = _reported(side)
     spinning = 0
     for t, status in statuses:
         for i in range(4):
-            seen = {rpm for ts, rpm in reported[i + 1] if t - 1.0 <= ts <= t}
+            seen = {rpm for ts, rpm in rpms[i + 1] if t - 1.0 <= ts <= t}
             assert status.rpm[i] in seen, (
                 f"{name}: ESC {i + 1} rpm {status.rpm[i]} at the GCS, the ESC sent {sorted(seen)}"
             )
+            seen_v = [v for ts, v in volts[i + 1] if t - 1.0 <= ts <= t]
+            assert any(abs(status.voltage[i] - v) < 0.005 for v in seen_v), (
+                f"{name}: ESC {i + 1} {status.voltage[i]} V at the GCS, the ESC sent {seen_v}"
+            )
             spinning += status.rpm[i] > 1000
     assert spinning >= len(statuses), f"{name}: the ESCs hardly spun in hover"
+
+
+def _reported(
+    side: Side,
+) -> tuple[dict[int, list[tuple[float, int]]], dict[int, list[tuple[float, float]]]]:
+    """What each simulated ESC (motor 1..4) sent on the bus: (time, rpm) and (time, volts).
+    CKESC: MSG1 speed and MSG2 voltage; FT: real-time erpm / pole pairs (as the bridge turns
+    it into rpm) and battery voltage."""
+    rpms: dict[int, list[tuple[float, int]]] = {n: [] for n in range(1, 5)}
+    volts: dict[int, list[tuple[float, float]]] = {n: [] for n in range(1, 5)}
+    for ts, msg in list(side.observer.frames):
+        try:
+            if side.protocol == "ft":
+                f = ft.decode(msg)
+                if f is None or f.esc_id not in rpms:
+                    continue
+                if isinstance(f.message, ft.RealtimeData1):
+                    rpms[f.esc_id].append((ts, int(f.message.erpm / FT_POLE_PAIRS)))
+                elif isinstance(f.message, ft.RealtimeData2):
+                    volts[f.esc_id].append((ts, f.message.battery_voltage_v))
+            else:
+                c = ckesc.decode(msg)
+                if c is None or c.source_node not in rpms:
+                    continue
+                if isinstance(c.message, ckesc.Msg1):
+                    rpms[c.source_node].append((ts, c.message.speed_rpm))
+                elif isinstance(c.message, ckesc.Msg2):
+                    volts[c.source_node].append((ts, c.message.voltage_v))
+        except CodecError:
+            continue
+    return rpms, volts
 
 
 def test_flight_wall_time(flight: Flight) -> None:
