@@ -14,7 +14,6 @@ import contextlib
 import fcntl
 import multiprocessing
 import os
-import select
 import signal
 import socket
 import subprocess
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import IO, Any
 
 # conftest sets MAVLINK20 before pymavlink is first imported (MAVLink 2, as PX4 speaks).
+import _udp_tap
 from conftest import ESC_BRIDGE, MULTICAST_GROUP, ROOT
 from pymavlink import mavutil
 
@@ -183,36 +183,6 @@ def start_sim_escs(can_port: int, log_path: Path, protocol: str = "ckesc") -> Lo
     )
 
 
-def _run_tap(listen_port: int, bridge_port: int, record: str, stop: Any) -> None:
-    """The body of :class:`UdpTap`'s process."""
-    upstream = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    upstream.bind(("127.0.0.1", listen_port))
-    downstream = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    downstream.bind(("127.0.0.1", 0))
-    upstream.settimeout(0.0)
-    downstream.settimeout(0.0)
-    autopilot: tuple[str, int] | None = None
-    with open(record, "wb", buffering=0) as out:
-        poller = select.poll()
-        poller.register(upstream.fileno(), select.POLLIN)
-        poller.register(downstream.fileno(), select.POLLIN)
-        while not stop.is_set():
-            for fd, _ in poller.poll(100):
-                if fd == upstream.fileno():
-                    with contextlib.suppress(BlockingIOError):
-                        data, autopilot = upstream.recvfrom(65536)
-                        # Stamped before forwarding: the bridge cannot have it any earlier.
-                        stamp = time.monotonic_ns()
-                        downstream.sendto(data, ("127.0.0.1", bridge_port))
-                        out.write(stamp.to_bytes(8, "little") + len(data).to_bytes(4, "little"))
-                        out.write(data)
-                else:
-                    with contextlib.suppress(BlockingIOError):
-                        data = downstream.recv(65536)
-                        if autopilot is not None:
-                            upstream.sendto(data, autopilot)
-
-
 class UdpTap:
     """A UDP relay between an autopilot's link and the bridge, in a process of its own: it
     forwards every datagram both ways unchanged and records each one the autopilot sends,
@@ -226,13 +196,20 @@ class UdpTap:
         self.record = record
         ctx = multiprocessing.get_context("spawn")
         self._stop = ctx.Event()
+        ready = ctx.Event()
+        # The relay's body lives in a module of the standard library only: a spawned child
+        # imports it in milliseconds, where this module's imports (pymavlink, the dialect)
+        # take seconds on a loaded machine, and PX4's first packets would find no one.
         self._process = ctx.Process(
-            target=_run_tap,
-            args=(listen_port, bridge_port, str(record), self._stop),
+            target=_udp_tap.run,
+            args=(listen_port, bridge_port, str(record), self._stop, ready),
             name="udp-tap",
             daemon=True,
         )
         self._process.start()
+        if not ready.wait(20):
+            self.close()
+            raise AssertionError(f"the UDP tap on port {listen_port} did not start in 20 s")
         self._parser: Any = dialect.MAVLink(None)
         self._parser.robust_parsing = True
         self._offset = 0

@@ -76,6 +76,9 @@ COMPONENT = {"aos": 191, "sor": 192, "ft": 193}  # one component per bridge, tol
 FT_MAX_CURRENT_A = 20.0  # the bridge's default ft_max_current_a
 FT_CURRENT_STEPS = 100_000  # FT currents travel in 1e-5 A
 FT_POLE_PAIRS = 7  # the bridge's default: ESC_STATUS rpm = FT erpm / 7
+# ESC_STATUS time_usec is the bridge's wall clock near its snapshot, and the observer's stamps
+# are the kernel's: a value may be stamped on the bus a little after time_usec.
+SNAPSHOT_SLACK_S = 0.05
 HOVER_S = 3.0
 AFTER_STALL_S = 2.0
 STALL_S = 1.0
@@ -198,7 +201,12 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
                     "--no-zenoh",
                 )
             # The bridges (and the companion computer) are up before the autopilot.
-            time.sleep(1.0)
+            for side in sides.values():
+
+                def listening(side: Side = side) -> bool:
+                    return side.bridge is not None and "listening" in side.bridge.output()
+
+                wait_until(listening, 30, f"{side.name}: the bridge's loop listening", 0.1)
             px4.start()
             fl = Flight(px4, GroundStation(f"udpout:127.0.0.1:{ports.gcs_local}"), sides)
             gcs = fl.gcs
@@ -211,6 +219,7 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
             _fly(fl)
             for side in sides.values():
                 side.frozen = True
+                side.cache.clear()  # what was read during the flight is incomplete
             fl.wall_s = time.monotonic() - started
             yield fl
         finally:
@@ -235,17 +244,21 @@ def _fly(fl: Flight) -> None:
     # Takeoff and land with NaN position and altitude: PX4's defaults (MIS_TAKEOFF_ALT 2.5 m).
     nan_position = [0.0, 0.0, 0.0, math.nan, math.nan, math.nan, math.nan]
 
-    def wait_for_outputs(after: float) -> None:
-        wait_until(lambda: _armed(gcs, sysid, after) is not None, 15, "PX4's HEARTBEAT at the GCS")
+    def wait_for_outputs(after: float, tag: str) -> None:
+        ev[f"{tag}_gcs_heartbeat"] = wait_until(
+            lambda: _armed(gcs, sysid, after) is not None, 15, "PX4's HEARTBEAT at the GCS"
+        )
         for side in fl.sides.values():
 
             def has_outputs(side: Side = side) -> bool:
                 return any(t >= after for t in _outputs(side, sysid)[0])
 
-            wait_until(has_outputs, 15, f"{side.name}: PX4's outputs at the bridge")
+            ev[f"{tag}_{side.name}_outputs"] = wait_until(
+                has_outputs, 15, f"{side.name}: PX4's outputs at the bridge"
+            )
         time.sleep(1.5)  # a stream request that is honoured shows its rate within a second
 
-    wait_for_outputs(ev["px4_start"])
+    wait_for_outputs(ev["px4_start"], "start")
     # Armed idle on the ground (PX4 disarms by itself after 10 s without a takeoff), then
     # killed: the bridge has non-zero commands to stop.
     ev["ground_arm_cmd"] = time.monotonic()
@@ -258,7 +271,7 @@ def _fly(fl: Flight) -> None:
     px4.start()
     ev["restart_ready"] = px4.wait_ready()
     px4.restore_links()
-    wait_for_outputs(ev["restart"])
+    wait_for_outputs(ev["restart"], "restart")
     ev["arm_cmd"] = time.monotonic()
     gcs.command(target, 400, [1], 20, "arm after the restart")
     gcs.command(target, 22, nan_position, 10, "takeoff")
@@ -727,15 +740,19 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
         assert info.count == 4 and info.info == 0b1111, f"{name}: {info}"
         assert list(info.failure_flags[:4]) == [0, 0, 0, 0], f"{name}: {info}"
     # Each rpm and voltage at the GCS is one the ESC reported on the bus shortly before.
+    # By when the bridge took each snapshot (ESC_STATUS time_usec, wall clock), not by when
+    # PX4 passed it on: after the stall PX4 forwards what it read late.
+    wall_minus_monotonic = time.time() - time.monotonic()
     rpms, volts = _reported(side)
     spinning = 0
-    for t, status in statuses:
+    for _, status in statuses:
+        t = status.time_usec / 1e6 - wall_minus_monotonic
         for i in range(4):
-            seen = {rpm for ts, rpm in rpms[i + 1] if t - 1.0 <= ts <= t}
+            seen = {rpm for ts, rpm in rpms[i + 1] if t - 1.0 <= ts <= t + SNAPSHOT_SLACK_S}
             assert status.rpm[i] in seen, (
                 f"{name}: ESC {i + 1} rpm {status.rpm[i]} at the GCS, the ESC sent {sorted(seen)}"
             )
-            seen_v = [v for ts, v in volts[i + 1] if t - 1.0 <= ts <= t]
+            seen_v = [v for ts, v in volts[i + 1] if t - 1.0 <= ts <= t + SNAPSHOT_SLACK_S]
             assert any(abs(status.voltage[i] - v) < 0.005 for v in seen_v), (
                 f"{name}: ESC {i + 1} {status.voltage[i]} V at the GCS, the ESC sent {seen_v}"
             )
