@@ -599,11 +599,12 @@ def _safe_after_loss(side: Side, sysid: int, lost_at: float) -> tuple[float, flo
 
 
 def _running_before(side: Side, last: float, what: str) -> None:
-    """The motors were running before PX4's last output before ``what`` (most frames of the
-    0.3 s before it non-zero), so the check after it is not vacuous."""
+    """The motors were running before PX4's last output before ``what``, so the check after
+    it is not vacuous: a quarter of the frames of the 0.3 s before it non-zero (armed idle,
+    PX4 puts some motors at 1000 µs, which FT's per-ESC frames carry as 0 A)."""
     before = [th for t, th in _commands(side) if last - 0.3 <= t <= last]
     running = sum(1 for th in before if any(th))
-    assert before and running >= len(before) / 2, (
+    assert before and running >= len(before) / 4, (
         f"{side.name}: the motors were not running before {what}: {running} of "
         f"{len(before)} frames non-zero"
     )
