@@ -1,29 +1,35 @@
 """The bridge against a real PX4 v1.16.0 SITL (SIH quad): one flight, many checks.
 
-One PX4 start serves the whole module. Two bridges fly the same flight side by side, each on
-a link, a CAN bus, four simulated CKESCs and an observer of its own:
+One PX4 start serves the whole module. Three bridges fly the same flight side by side, each
+on a MAVLink link, a CAN bus (udp_multicast), four simulated ESCs (``esc-bridge sim``) and a
+CAN observer of its own:
 
-* ``aos``: ``--source actuator_output_status`` on PX4's own onboard link (14580+N -> 14540+N);
-* ``sor``: ``--source servo_output_raw`` on a second onboard link added with ``mavlink start``.
+* ``aos``: ``--source actuator_output_status``, CKESC, on PX4's own onboard link
+  (UDP 14580+N -> 14540+N);
+* ``sor``: ``--source servo_output_raw``, CKESC, on an onboard link added with
+  ``mavlink start``;
+* ``ft``: ``--source actuator_output_status``, Flipsky FT in current mode, on another one.
 
 Between PX4 and each bridge a UDP tap (a relay in a process of its own) records every
 datagram PX4 sends, stamped before it is forwarded: the test's own record of which motor
 output the bridge could have had at any moment. A pymavlink ground station on PX4's GCS port
-flies: arm, takeoff, hover, a 1 s SIGSTOP of PX4, hover, land, disarm; then PX4 is killed,
-restarted, and armed once more. The checks below read the observers, the taps and the ground
-station afterwards.
+flies (COMMAND_LONG 400, 22, 21): arm on the ground, kill PX4 (SIGKILL) while armed, restart
+it; arm, take off, hover, stop PX4 for 1 s (SIGSTOP/SIGCONT), hover, land, disarm. The checks
+read the observers, the taps and the ground station afterwards.
 
 The lag rule. A command frame observed at time t must equal the scaling (below) of one of
 the motor outputs the tap forwarded in [t_j, t], where t_j is the time of the newest output
-forwarded at or before t - LAG_S: a frame may carry an older output for at most LAG_S after a
-newer one reached the bridge, never one newer than the tap has seen. An all-zero frame is
-also allowed when the bridge must be safe: PX4's newest HEARTBEAT (at t or t - LAG_S) says
-disarmed, or the newest output is nearly stale (forwarded longer than input_timeout_ms -
-STALE_MARGIN_S ago; PX4 produces an output before it sends it). The scaling is the
-passthrough's: throttle = int(clamp((pwm - 1000) / 1000, 0, 1) * 2000 + 0.5) for motors 1..4.
+forwarded at or before t - LAG_S: a frame may carry an older output for at most LAG_S (20 ms)
+after a newer one reached the bridge, and never one newer than the tap had forwarded (1 ms
+allowed between the observer's and the tap's clocks). An all-zero frame is also allowed when
+the bridge must be safe: PX4's newest HEARTBEAT (at t or at t - LAG_S) says disarmed, or the
+newest output is nearly stale (forwarded longer than input_timeout_ms - STALE_MARGIN_S ago:
+PX4 produces an output a little before it sends it). The scaling is the passthrough's,
+fraction = clamp((pwm - 1000) / 1000, 0, 1) for motors 1..4: CKESC throttle
+int(fraction * 2000 + 0.5), FT current round(fraction * 20 A) in the wire's 1e-5 A steps.
 
-``pytest -s`` prints the measurements (and ``$ESC_BRIDGE_SITL_REPORT`` names a JSON file to
-append them to, as bench/sitl_px4.py does).
+``pytest -s`` prints the measurements (and ``$ESC_BRIDGE_SITL_REPORT`` names a JSON-lines file
+to append them to, as bench/sitl_px4.py does). ``$ESC_BRIDGE_PX4`` names the PX4 build.
 """
 
 from __future__ import annotations
@@ -32,7 +38,6 @@ import bisect
 import json
 import math
 import os
-import statistics
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -797,7 +802,3 @@ def test_flight_wall_time(flight: Flight) -> None:
     for key, value in flight.events.items():
         REPORT[f"event {key}, s after PX4 start"] = round(value - flight.events["px4_start"], 2)
     assert flight.wall_s < 90, f"the flight took {flight.wall_s:.0f} s"
-
-
-def _median(xs: list[float]) -> float:
-    return statistics.median(xs) if xs else math.nan
