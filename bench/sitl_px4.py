@@ -68,8 +68,12 @@ def run_flights(count: int) -> list[dict[str, Any]]:
                 text=True,
                 check=False,
             )
-            summary = result.stdout.strip().splitlines()[-1] if result.stdout.strip() else ""
+            lines = result.stdout.strip().splitlines()
+            summary = lines[-1] if lines else result.stderr.strip()[-300:]
             print(f"flight {i + 1}: {time.monotonic() - started:.0f} s, {summary}", flush=True)
+            for line in lines:
+                if line.startswith(("FAILED", "ERROR", "XPASS")):
+                    print(f"  {line[:300]}", flush=True)
         if target.exists():
             reports = [json.loads(line) for line in target.read_text().splitlines()]
     return reports

@@ -750,19 +750,27 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
     # PX4 passed it on: after the stall PX4 forwards what it read late.
     wall_minus_monotonic = time.time() - time.monotonic()
     rpms, volts = _reported(side)
-    spinning = 0
+    spinning = exact = 0
     for _, status in statuses:
         t = status.time_usec / 1e6 - wall_minus_monotonic
         for i in range(4):
-            seen = {rpm for ts, rpm in rpms[i + 1] if t - 1.0 <= ts <= t + SNAPSHOT_SLACK_S}
-            assert status.rpm[i] in seen, (
-                f"{name}: ESC {i + 1} rpm {status.rpm[i]} at the GCS, the ESC sent {sorted(seen)}"
-            )
+            # The value is one the ESC sent; the observer (a Python thread among three busy
+            # buses) may have missed that very frame, so a value between the ESC's lowest and
+            # highest of the last 0.2 s passes too, and the exact share is held apart.
+            recent = [r for ts, r in rpms[i + 1] if t - 0.2 <= ts <= t + SNAPSHOT_SLACK_S]
+            seen = {r for ts, r in rpms[i + 1] if t - 1.0 <= ts <= t + SNAPSHOT_SLACK_S}
+            exact += status.rpm[i] in seen
+            assert status.rpm[i] in seen or (
+                recent and min(recent) <= status.rpm[i] <= max(recent)
+            ), f"{name}: ESC {i + 1} rpm {status.rpm[i]} at the GCS, the ESC sent {sorted(seen)}"
             seen_v = [v for ts, v in volts[i + 1] if t - 1.0 <= ts <= t + SNAPSHOT_SLACK_S]
             assert any(abs(status.voltage[i] - v) < 0.005 for v in seen_v), (
                 f"{name}: ESC {i + 1} {status.voltage[i]} V at the GCS, the ESC sent {seen_v}"
             )
             spinning += status.rpm[i] > 1000
+    share = 100 * exact / (4 * len(statuses))
+    REPORT[f"{name}: ESC_STATUS rpm equal to one the ESC sent in the last 1 s, %"] = round(share, 1)
+    assert share >= 90, f"{name}: only {share:.1f} % of the rpm values seen on the bus"
     assert spinning >= len(statuses), f"{name}: the ESCs hardly spun in hover"
 
 
