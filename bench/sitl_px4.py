@@ -120,7 +120,7 @@ def heartbeat_study(arms: int) -> None:
                 px4.wait_ready()
                 gcs = GroundStation(f"udpout:127.0.0.1:{ports.gcs_local}")
                 sysid = px4.system_id
-                mav = gcs._mav  # an encoder with the GCS's ids is all we need here
+                mav = gcs.mav  # the GCS's encoder packs our requests (its ids do not matter)
                 tap_addr: tuple[str, int] | None = None
                 wait_until(lambda: bool(_msgs(tap, "HEARTBEAT", sysid, 0)), 10, "HEARTBEAT")
 

@@ -251,7 +251,8 @@ class GroundStation:
         self.conn: Any = mavutil.mavlink_connection(
             url, source_system=system, source_component=component
         )
-        self._mav: Any = dialect.MAVLink(self.conn, srcSystem=system, srcComponent=component)
+        self.mav: Any = dialect.MAVLink(self.conn, srcSystem=system, srcComponent=component)
+        """The project dialect's encoder with this station's ids."""
         self._parser: Any = dialect.MAVLink(None)
         self._parser.robust_parsing = True
         self.messages: list[tuple[float, Any]] = []
@@ -267,7 +268,7 @@ class GroundStation:
             if now >= next_beat:
                 with contextlib.suppress(OSError):
                     self.send(
-                        self._mav.heartbeat_encode(
+                        self.mav.heartbeat_encode(
                             dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 4
                         )
                     )
@@ -286,7 +287,7 @@ class GroundStation:
                 self.messages.extend((stamp, m) for m in batch)
 
     def send(self, msg: Any) -> None:
-        self.conn.write(msg.pack(self._mav))
+        self.conn.write(msg.pack(self.mav))
 
     def received(
         self, kind: str, after: float = 0.0, sender: tuple[int, int] | None = None
@@ -317,7 +318,7 @@ class GroundStation:
         while time.monotonic() < deadline:
             sent = time.monotonic()
             p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
-            self.send(self._mav.command_long_encode(*target, command, 0, *p))
+            self.send(self.mav.command_long_encode(*target, command, 0, *p))
             answer_by = min(deadline, sent + retry_s)
             while time.monotonic() < answer_by:
                 for t, ack in self.received("COMMAND_ACK", after=sent):
