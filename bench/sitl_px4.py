@@ -6,6 +6,9 @@ Run: ``python bench/sitl_px4.py [--flights 3] [--heartbeat] [--json FILE]``
 - ``--flights N`` runs the test module's flight N times (``pytest tests/sitl/test_px4.py``, each
   a PX4 start, two bridges, simulated ESCs; ~50 s each) and prints each measurement's median and
   range over the flights;
+- ``--stall-recovery S`` hovers with one bridge (actuator_output_status, CKESC), stops PX4
+  for S seconds (SIGSTOP/SIGCONT) and prints how long after SIGCONT the bridge sends non-zero
+  commands again (it waits ``--recovery-wait`` seconds, 90 by default);
 - ``--heartbeat`` starts PX4 alone and, on its onboard link (where a companion listens), asks
   for HEARTBEAT (message 0) with MAV_CMD_SET_MESSAGE_INTERVAL at several rates, printing the
   COMMAND_ACK result and the rate that then arrives; then it arms and disarms PX4 from a
@@ -40,10 +43,16 @@ from _px4 import (  # noqa: E402
     extract_build,
     find_build,
     px4_instance,
+    start_bridge,
+    start_sim_escs,
     wait_until,
+    write_bridge_config,
 )
 from _stats import percentile  # noqa: E402
-from conftest import free_port  # noqa: E402
+from conftest import Observer, free_port  # noqa: E402
+
+from bridge.errors import CodecError  # noqa: E402
+from bridge.escs import ckesc  # noqa: E402
 
 
 def run_flights(count: int) -> list[dict[str, Any]]:
@@ -203,13 +212,92 @@ def heartbeat_study(arms: int) -> None:
                 tap.close()
 
 
+def _spinning(msg: Any) -> bool:
+    """A CKESC throttle frame with a motor not at 0."""
+    try:
+        frame = ckesc.decode(msg)
+    except CodecError:
+        return False
+    return (
+        frame is not None
+        and isinstance(frame.message, ckesc.RawCommand12b)
+        and any(frame.message.throttles)
+    )
+
+
+def stall_recovery(stall_s: float, wait_s: float) -> None:
+    """One bridge (actuator_output_status, CKESC) in a hover: stop PX4 for ``stall_s``, then
+    time how long after SIGCONT the bridge sends non-zero commands again (at most ``wait_s``)."""
+    build, why = find_build()
+    if build is None:
+        sys.exit(why)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        root = extract_build(build, work / "build")
+        with px4_instance(root, work) as (px4, claim):
+            ports = claim.ports
+            can_port, bridge_port = free_port(), free_port()
+            observer = Observer(can_port)
+            tap = UdpTap(ports.onboard_remote, bridge_port, work / "tap.bin")
+            sim = start_sim_escs(can_port, work / "sim.log")
+            config = write_bridge_config(
+                work / "bridge.toml",
+                source="actuator_output_status",
+                autopilot_system_id=px4.system_id,
+                component_id=191,
+            )
+            bridge = start_bridge(
+                config,
+                f"udpin:127.0.0.1:{bridge_port}",
+                can_port,
+                work / "bridge.log",
+                "--no-zenoh",
+            )
+            gcs: GroundStation | None = None
+            try:
+                wait_until(lambda: "listening" in bridge.output(), 30, "the bridge listening")
+                px4.start()
+                px4.wait_ready()
+                gcs = GroundStation(f"udpout:127.0.0.1:{ports.gcs_local}")
+                target = (px4.system_id, 1)
+                time.sleep(2.0)
+                gcs.command(target, 400, [1], 20, "arm")
+                nan_position = [0.0, 0.0, 0.0, math.nan, math.nan, math.nan, math.nan]
+                gcs.command(target, 22, nan_position, 10, "takeoff")
+                time.sleep(10.0)
+                px4.pause()
+                time.sleep(stall_s)
+                px4.resume()
+                resumed = time.monotonic()
+                running, _ = observer.wait_for(_spinning, wait_s, after=resumed)
+                print(
+                    f"stall {stall_s:.1f} s: the bridge ran the motors again "
+                    f"{running - resumed:.1f} s after SIGCONT",
+                    flush=True,
+                )
+            except AssertionError as exc:
+                print(f"stall {stall_s:.1f} s: not running again: {exc}", flush=True)
+            finally:
+                if gcs is not None:
+                    gcs.close()
+                px4.stop()
+                bridge.stop()
+                sim.stop()
+                tap.close()
+                observer.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--flights", type=int, default=0)
     parser.add_argument("--heartbeat", action="store_true")
     parser.add_argument("--arms", type=int, default=5)
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--stall-recovery", type=float, metavar="SECONDS", default=0.0)
+    parser.add_argument("--recovery-wait", type=float, default=90.0)
     args = parser.parse_args()
+    if args.stall_recovery:
+        stall_recovery(args.stall_recovery, args.recovery_wait)
     if args.heartbeat:
         heartbeat_study(args.arms)
     if args.flights:
