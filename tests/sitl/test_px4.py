@@ -107,7 +107,8 @@ CLOCK_AFTER_STALL = pytest.mark.xfail(
         "after a 1 s SIGSTOP its time_usec stays 1 s behind ours; bridge/mavlink/clock.py lets "
         "its offset estimate rise only 2 % of remote time (max_drift) and re-seeds only when "
         "the remote time jumped too, so every later output looks ~1 s old: FAILSAFE input "
-        "stale for ~45 s of flight"
+        "stale, motors stopped for ~72 s after SIGCONT (16 s after a 0.3 s stall; "
+        "bench/sitl_px4.py --stall-recovery)"
     ),
 )
 
