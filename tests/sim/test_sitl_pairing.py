@@ -1,8 +1,9 @@
-"""The README's SITL recipe, with an ArduCopter stand-in: config/sitl.toml, `esc-bridge run` and
-`esc-bridge sim` as separate processes on one udp_multicast bus.
+"""The README's SITL recipe's files, with an ArduCopter stand-in where no SITL build is needed:
+config/sitl.toml, `esc-bridge run` and `esc-bridge sim` as separate processes on one
+udp_multicast bus (tests/sitl flies the real autopilots).
 
-The stand-in behaves as the issue reports a current ArduCopter SITL does: MAVLink on a TCP
-server (SITL's 5760), no SERVO_OUTPUT_RAW until MAV_CMD_SET_MESSAGE_INTERVAL asks for message
+The stand-in behaves as ArduCopter SITL does (../shared/sitl/README.md): MAVLink on a TCP
+server (SITL's SERIAL1, 5762), no SERVO_OUTPUT_RAW until MAV_CMD_SET_MESSAGE_INTERVAL asks for message
 36, then at the asked rate up to 200 Hz; motors 1000 µs disarmed, ~1100 µs armed at idle,
 ~1590 µs in hover.
 """
