@@ -35,9 +35,12 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT / "tests" / "sitl"), str(ROOT / "tests")]
+# tests/ holds the top-level conftest and the sitl package (tests/sitl) the harness lives in.
+sys.path[:0] = [str(ROOT / "tests")]
 
-from _px4 import (  # noqa: E402
+from _stats import percentile  # noqa: E402
+from conftest import Observer, free_port  # noqa: E402
+from sitl._px4 import (  # noqa: E402
     GroundStation,
     UdpTap,
     extract_build,
@@ -48,8 +51,6 @@ from _px4 import (  # noqa: E402
     wait_until,
     write_bridge_config,
 )
-from _stats import percentile  # noqa: E402
-from conftest import Observer, free_port  # noqa: E402
 
 from bridge.errors import CodecError  # noqa: E402
 from bridge.escs import ckesc  # noqa: E402

@@ -26,11 +26,12 @@ from pathlib import Path
 from typing import IO, Any
 
 # conftest sets MAVLINK20 before pymavlink is first imported (MAVLink 2, as PX4 speaks).
-import _udp_tap
 from conftest import ESC_BRIDGE, MULTICAST_GROUP, ROOT
 from pymavlink import mavutil
 
 from bridge.mavlink import load_dialect
+
+from . import _udp_tap
 
 dialect: Any = load_dialect()
 

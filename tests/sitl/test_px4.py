@@ -46,7 +46,12 @@ from typing import Any
 
 import can
 import pytest
-from _px4 import (
+from conftest import Observer, free_port
+
+from bridge.errors import CodecError
+from bridge.escs import ckesc, ft
+
+from ._px4 import (
     GroundStation,
     LoggedProcess,
     Px4,
@@ -60,10 +65,6 @@ from _px4 import (
     wait_until,
     write_bridge_config,
 )
-from conftest import Observer, free_port
-
-from bridge.errors import CodecError
-from bridge.escs import ckesc, ft
 
 INPUT_TIMEOUT_S = 0.100  # the bridges' input_timeout_ms
 LAG_S = 0.020  # see the module's lag rule: 8 output periods, for a loaded 2-core machine
