@@ -61,14 +61,20 @@ from .conftest import (
     reserved_instance,
     start_bridge,
     start_sim,
+    stream_answers,
     udp_drops,
+    wait_until,
     widen_receive_buffer,
+    write_bridge_config,
 )
 
 PERIOD_S = 1 / 400  # both bridges tick at 400 Hz (CKESC 400 Hz; FT 4 ESCs x 100 Hz)
 INPUT_TIMEOUT_S = 0.100  # [output] input_timeout_ms default
 STREAM_HZ = 200  # [mavlink] stream_rate_hz default
 FT_FULL_SCALE_A = 20.0
+# The observer's and the tap's stamps, taken in two processes, may be this far apart (as in
+# test_px4.py's lag rule): a frame stamped just before the tap's stamp of the output it carries.
+CLOCK_SKEW_S = 0.001
 # A frame is judged against the motor output only while that output is fresh: newer than half
 # the input timeout at the tap. Older ones (the stall, the kill) are the failsafe tests' part.
 FRESH_S = INPUT_TIMEOUT_S / 2
@@ -193,7 +199,9 @@ class Rig:
         taken when its tick fired; one that arrived since may not have been taken yet. The
         stamps themselves can be a few ms late on a loaded machine (the kernel may deliver
         loopback packets from ksoftirqd), hence the message of lag beside the tick."""
-        i = self.newest_index(t)
+        # CLOCK_SKEW_S: the observer's stamp (the kernel's wall clock, moved onto the monotonic
+        # one) and the tap's (monotonic) can disagree by that much.
+        i = self.newest_index(t + CLOCK_SKEW_S)
         j = bisect.bisect_right(self._servo_sent, t - PERIOD_S) - 1
         j = max(min(j, i - 1), 0)
         servo = self.tap.servo
@@ -229,15 +237,6 @@ class Flight:
 # Flying it
 
 
-def wait_until(condition: Callable[[], bool], timeout_s: float, what: str) -> float:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout_s} s")
-        time.sleep(0.02)
-    return time.monotonic()
-
-
 def streaming(tap: MavTap, link: int, since: float, min_messages: int = 50) -> bool:
     rec = tap.records().get(link)
     return rec is not None and sum(1 for s in rec.servo if s.t >= since) >= min_messages
@@ -253,7 +252,7 @@ def bridge_spinning(rig: Rig, since: float) -> bool:
 
 def message_interval(gcs: GroundStation, msg_id: int, hz: float) -> tuple[int, float]:
     """Ask for ``msg_id`` at ``hz`` on the ground station's link: (ACK result, sent time)."""
-    sent = gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+    sent = gcs.send_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
     return gcs.ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, sent), sent
 
 
@@ -264,7 +263,9 @@ def measure_heartbeat_rates(flight: Flight) -> None:
         result, sent = message_interval(gcs, 0, hz)
         time.sleep(1.2)
         beats = [
-            t for t, m in gcs.since(sent + 0.2, "HEARTBEAT") if from_autopilot(m) and t < sent + 1.2
+            t
+            for t, m in gcs.received("HEARTBEAT", sent + 0.2)
+            if from_autopilot(m) and t < sent + 1.2
         ]
         flight.heartbeat_rates[hz] = (result, len(beats) / 1.0)
     # The rate the motor-test measurement below uses on this link.
@@ -272,17 +273,17 @@ def measure_heartbeat_rates(flight: Flight) -> None:
     result, sent = message_interval(gcs, 36, 400)
     time.sleep(0.3)
     # ArduPilot splits a long STATUSTEXT into chunks sharing a non-zero id.
-    chunks = [m for _, m in gcs.since(sent, "STATUSTEXT") if m.id]
+    chunks = [m for _, m in gcs.received("STATUSTEXT", sent) if m.id]
     texts = "".join(m.text for m in chunks if m.id == chunks[0].id) if chunks else ""
     message_interval(gcs, 36, STREAM_HZ)
     time.sleep(1.0)
-    got = [m for _, m in gcs.since(time.monotonic() - 0.8, "SERVO_OUTPUT_RAW")]
+    got = [m for _, m in gcs.received("SERVO_OUTPUT_RAW", time.monotonic() - 0.8)]
     flight.servo_400 = (result, texts, len(got) / 0.8)
 
 
 def motor_test(flight: Flight, label: str, motor: int, seconds: float) -> MotorTest:
     """ArduCopter's own motor test, sent by the ground station to the autopilot."""
-    sent = flight.gcs.command(
+    sent = flight.gcs.send_command(
         mavlink.MAV_CMD_DO_MOTOR_TEST,
         motor,
         mavlink.MOTOR_TEST_THROTTLE_PERCENT,
@@ -314,18 +315,18 @@ def arm_and_take_off(flight: Flight, altitude_m: float) -> None:
     deadline = flight.events["restart"] + 120 if "restart" in flight.events else 0
     deadline = max(deadline, time.monotonic() + 120)
     while True:  # pre-arm checks refuse until the EKF is happy (~40 s after start)
-        sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # custom mode 4: GUIDED
+        sent = gcs.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # custom mode 4: GUIDED
         gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent)
-        sent = gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        sent = gcs.send_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         flight.arm_attempts += 1
         if gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, sent) == mavlink.MAV_RESULT_ACCEPTED:
             break
         if time.monotonic() > deadline:
-            texts = [m.text for _, m in gcs.since(sent, "STATUSTEXT")]
+            texts = [m.text for _, m in gcs.received("STATUSTEXT", sent)]
             raise AssertionError(f"ArduCopter refused to arm for 120 s: {texts}")
         time.sleep(1.0)
     flight.events["armed"] = time.monotonic()
-    sent = gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+    sent = gcs.send_command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
     result = gcs.ack(mavlink.MAV_CMD_NAV_TAKEOFF, sent)
     assert result == mavlink.MAV_RESULT_ACCEPTED, f"takeoff refused: {result}"
     gcs.wait_for(
@@ -399,7 +400,7 @@ def fly(flight: Flight, tap: MavTap) -> None:
     ap.process.send_signal(signal.SIGCONT)  # type: ignore[union-attr]
     flight.events["resume"] = time.monotonic()
     time.sleep(RECOVERY_WAIT_S)
-    sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
+    sent = gcs.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
     assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent) == mavlink.MAV_RESULT_ACCEPTED
     flight.events["land"] = sent
     flight.events["disarmed"] = wait_disarmed_at_gcs(flight, sent, 40, "disarmed after LAND")
@@ -427,15 +428,22 @@ def flight(
             observer = Observer(can_port)
             stack.callback(observer.close)
             widen_receive_buffer(observer.bus)
-            sim = start_sim(workdir, name, protocol, can_port)
+            sim = start_sim(can_port, workdir / f"sim-{name}.log", protocol)
             stack.callback(sim.stop)
+            config = write_bridge_config(
+                workdir / f"{name}.toml",
+                component_id=component,
+                protocol=protocol,
+                stream_rate_hz=STREAM_HZ,
+                input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
+            )
             bridge = start_bridge(
-                workdir,
-                name,
-                protocol,
-                tap.listen_ports[link],
+                config,
+                f"tcp:127.0.0.1:{tap.listen_ports[link]}",
                 can_port,
-                f"[mavlink]\ncomponent_id = {component}\nstream_rate_hz = {STREAM_HZ}\n",
+                workdir / f"bridge-{name}.log",
+                "--vehicle",
+                name,
             )
             stack.callback(bridge.stop)
             rigs.append(
@@ -443,7 +451,7 @@ def flight(
             )
         ap.start()
         started = time.monotonic()
-        gcs = GroundStation(ap.port(0))
+        gcs = GroundStation(f"tcp:127.0.0.1:{ap.port(0)}")
         stack.callback(gcs.close)
         result = Flight(ap, gcs, rigs, started)
         try:
@@ -547,14 +555,17 @@ PHASES = [
     "motor test B (killed)",
     "motor test C",
 ]
+
+
 STALL_XFAIL = pytest.mark.xfail(
     strict=True,
     reason=(
-        "finding: SITL's time_usec stands still while the process is stopped, so after SIGCONT "
-        "every SERVO_OUTPUT_RAW carries a time 1 s behind; bridge/mavlink/clock.py lets its "
-        "offset estimate rise by only 2 % of remote time, so the bridge judges the fresh "
-        "inputs ~1 s old and stays in FAILSAFE input stale for ~40 s (measured: 40.0 s) "
-        "while the autopilot flies on"
+        "daemon finding, left for the clock's owner: after SIGCONT ArduCopter SITL sends a "
+        "burst (~20 SERVO_OUTPUT_RAW within 5 ms, their time_usec running 0.1 s ahead) and "
+        "then its 200 Hz rhythm; bridge/mavlink/clock.py takes the burst for a released "
+        "backlog and drops its pause check, so every later output looks ~0.9 s old: FAILSAFE "
+        "input stale until the landing (12 s measured). PX4 SITL resumes without a burst "
+        "and recovers."
     ),
 )
 
@@ -778,8 +789,10 @@ def test_ardupilot_motor_test_spins_the_right_motor(flight: Flight, rig_name: st
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "the bridge learns ArduCopter's arming only from its 1 Hz HEARTBEAT: the test's first "
-        "~0-1 s go out as zeros (a higher-rate HEARTBEAT request is being added to the daemon)"
+        "the bridge learns ArduCopter's arming from its HEARTBEAT only (SERVO_OUTPUT_RAW "
+        "carries none): 20 Hz when granted, 4 Hz while ArduCopter boots (the bridge logs "
+        "'ACCEPTED HEARTBEAT at 20 Hz but sends 4 Hz'), so a motor test's first 1-250 ms of "
+        "outputs go out as zeros (the measured delays are in the measurements)"
     ),
 )
 @pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
@@ -810,7 +823,7 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
     to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus;
     ArduCopter sends none of its own (SIM_ESC_TELEM 0)."""
     start, end = flight.events["hover"], flight.events["stall"]
-    received = flight.gcs.since(flight.started, "ESC_TELEMETRY_1_TO_4")
+    received = flight.gcs.received("ESC_TELEMETRY_1_TO_4", flight.started)
     own = [m for _, m in received if m.get_srcComponent() == 1]
     assert not own, f"ArduCopter sent ESC telemetry of its own: {own[:2]}"
     for rig in flight.rigs:
@@ -840,9 +853,14 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
             for t, m in received
             if m.get_srcComponent() == rig.component and start <= t <= end
         ]
-        assert len(mine) >= 10, (
+        sysid = mine[0][1].get_srcSystem() if mine else None
+        # The bridge sends ArduPilot's link ESC_TELEMETRY_1_TO_4 at 2 Hz (its per-link set,
+        # kept small for a telemetry radio); a boundary may cut one.
+        hz = len(mine) / (end - start)
+        assert 2 * (end - start) - 1.5 <= len(mine) <= 2 * (end - start) + 1.5, (
             f"{len(mine)} ESC_TELEMETRY_1_TO_4 from the {rig.name} bridge (component "
-            f"{rig.component}) reached the ground station in {end - start:.1f} s of hover"
+            f"{rig.component}) reached the ground station in {end - start:.1f} s of hover "
+            f"({hz:.1f} Hz; 2 Hz expected)"
         )
         for t, msg in mine:
             for m in range(4):
@@ -862,7 +880,7 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
                 )
         measured(
             f"{rig.name} ESC_TELEMETRY_1_TO_4 at the ground station",
-            f"{len(mine) / (end - start):.1f} Hz in hover, values as on the bus",
+            f"{hz:.1f} Hz in hover from {sysid}/{rig.component}, values as on the bus",
         )
 
 
@@ -878,7 +896,10 @@ def test_servo_output_rate(flight: Flight) -> None:
             f"{rate:.1f} Hz; gap p50 {ms(statistics.median(gaps))}, p99 {ms(pct(gaps, 0.99))},"
             f" max {ms(max(gaps))}",
         )
+        answers = stream_answers(rig.bridge.output(), "SERVO_OUTPUT_RAW")
+        measured(f"{rig.name} SERVO_OUTPUT_RAW request answered", answers)
         assert 0.9 * STREAM_HZ <= rate <= 1.1 * STREAM_HZ, f"{rig.name}: {rate:.1f} Hz"
+        assert f"ACCEPTED {STREAM_HZ} Hz" in answers, f"{rig.name}: ArduCopter answered {answers}"
     result, texts, rate = flight.servo_400
     measured(
         "SERVO_OUTPUT_RAW at 400 Hz (ground station link)",
@@ -906,7 +927,7 @@ def test_heartbeat_interval(flight: Flight) -> None:
     test = next(t for t in flight.motor_tests if t.label == "A")
     first_out: int | None = None
     newest_out = 0
-    for _, m in flight.gcs.since(test.sent):
+    for _, m in flight.gcs.received(after=test.sent):
         if m.get_type() == "SERVO_OUTPUT_RAW":
             newest_out = m.time_usec
             moved = any(getattr(m, f"servo{i}_raw") != 1000 for i in range(1, 5))
