@@ -97,6 +97,7 @@ class StreamRequest:
         self._unanswered = 0  # requests sent while the autopilot was there, not answered
         self._limit_logged = False
         self._silence_logged = False
+        self._was_near = False  # arrived at the asked rate since the last reset
 
     @property
     def asked_hz(self) -> float:
@@ -126,8 +127,22 @@ class StreamRequest:
         else:
             self._was_arriving = True
             if arriving_hz >= NEAR * self.asked_hz:
+                self._was_near = True
                 return None
-            if self._accepted:
+            if self._accepted and self._was_near:
+                # It came at the rate it ACCEPTED and no longer does: an autopilot that
+                # restarted forgot the interval, and one that restarts within a check (ArduCopter
+                # SITL, ~1 s) never stops the stream for a whole one. Its limit it is not: ask
+                # again (measured: taken as its limit, HEARTBEAT stayed at 2 Hz for the flight).
+                log.info(
+                    "%s sends %s at %.0f Hz, below the %.0f Hz it ACCEPTED and sent: asking again",
+                    self.source,
+                    self.name,
+                    arriving_hz,
+                    self.asked_hz,
+                )
+                self._reset()
+            elif self._accepted:
                 if not self._limit_logged:
                     self._limit_logged = True
                     log.warning(
