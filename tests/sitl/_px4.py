@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
-import signal
 import socket
 import subprocess
 import tarfile
@@ -24,7 +23,7 @@ from typing import Any
 from conftest import ROOT
 
 from . import _udp_tap
-from .conftest import Process, claimed_instance, dialect, port_free, wait_until
+from .conftest import Process, SitlAutopilot, claimed_instance, dialect, port_free, wait_until
 
 
 class UdpTap:
@@ -170,7 +169,7 @@ def px4_ports(n: int) -> Px4Ports:
     return Px4Ports(14580 + n, 14540 + n, 18570 + n)
 
 
-class Px4:
+class Px4(SitlAutopilot):
     """One PX4 SITL instance (SIH quad), in a working directory of its own."""
 
     def __init__(self, root: Path, instance: int, workdir: Path) -> None:
@@ -256,22 +255,6 @@ class Px4:
     def restore_links(self) -> None:
         for index in range(len(self._links)):
             self._start_link(index)
-
-    def pause(self) -> None:
-        assert self.process is not None
-        os.kill(self.process.pid, signal.SIGSTOP)
-
-    def resume(self) -> None:
-        assert self.process is not None
-        os.kill(self.process.pid, signal.SIGCONT)
-
-    def kill(self) -> None:
-        assert self.process is not None
-        self.process.stop(signal.SIGKILL, timeout_s=5)
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.stop(signal.SIGTERM, timeout_s=5)
 
 
 @contextlib.contextmanager

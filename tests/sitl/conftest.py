@@ -5,11 +5,16 @@ tests at a build of their own with an environment variable, and without a build 
 and say why. Everything runs on loopback: the autopilot's MAVLink on TCP, CAN between processes
 on python-can's udp_multicast interface with hop limit 0.
 
-The pieces: the autopilot in a working directory of its own with an instance number whose
-ports are free (``-I N``), the bridge through its CLI (``esc-bridge run``), the simulated ESCs
-(``esc-bridge sim``), a recording tap on the bridge's autopilot link (``mavtap.py``, a process
-of its own), and a ground station on another autopilot port. Every process started here is
-stopped in a ``finally`` (the fixtures use context managers), also when a test fails.
+The pieces both test files use (test_arducopter.py, and test_px4.py with its PX4 harness in
+_px4.py): a logged :class:`Process` in a session of its own, :func:`wait_until` with a
+deadline, instance numbers held by lock files (:func:`claimed_instance`), the autopilot's
+process signals (:class:`SitlAutopilot`), the bridge through its CLI (:func:`start_bridge`,
+:func:`write_bridge_config`), the simulated ESCs (:func:`start_sim`), observers with a 4 MiB
+receive buffer whose kernel drops are counted (:func:`wide_observer`, :func:`udp_drops`), the
+command decoder (:func:`motor_commands`), one :class:`GroundStation` (TCP for ArduPilot, UDP for
+PX4) and :func:`measured`. The taps differ because the links do: ArduPilot's TCP tap
+(``mavtap.py``) and PX4's UDP relay (``_px4.UdpTap``). Every process started here is stopped in
+a ``finally`` (the fixtures use context managers), also when a test fails.
 """
 
 from __future__ import annotations
@@ -32,9 +37,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import can
 import pytest
-from conftest import ESC_BRIDGE, ROOT, can_args, free_port
+from conftest import ESC_BRIDGE, ROOT, Observer, can_args, free_port
 
+from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
 
 # The project's dialect (ArduPilot's messages plus ESC_INFO/ESC_STATUS), MAVLink 2: tests/conftest
@@ -201,6 +208,14 @@ def widen_receive_buffer(bus: Any, size: int = 4 << 20) -> None:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
 
 
+def wide_observer(can_port: int) -> Observer:
+    """An observer of the bus at ``can_port`` whose socket queues 4 MiB (see
+    :func:`widen_receive_buffer`); ask :func:`udp_drops` afterwards whether it lost any."""
+    observer = Observer(can_port)
+    widen_receive_buffer(observer.bus)
+    return observer
+
+
 def udp_drops(bus: Any) -> int:
     """Datagrams the kernel dropped for this bus's socket (a full receive buffer): an
     observer that lost frames cannot vouch for what was on the bus."""
@@ -294,7 +309,36 @@ def wait_until(
         time.sleep(poll_s)
 
 
-class ArduCopter:
+class SitlAutopilot:
+    """What a test does to an autopilot's SITL process, whichever autopilot it is."""
+
+    process: Process | None = None
+
+    @property
+    def pid(self) -> int:
+        assert self.process is not None
+        return self.process.pid
+
+    def pause(self) -> None:
+        """SIGSTOP: the autopilot falls silent, its simulated clock standing still."""
+        assert self.process is not None
+        os.kill(self.process.pid, signal.SIGSTOP)
+
+    def resume(self) -> None:
+        assert self.process is not None
+        os.kill(self.process.pid, signal.SIGCONT)
+
+    def kill(self) -> None:
+        """SIGKILL: the links drop at once, as when the flight controller dies."""
+        assert self.process is not None
+        self.process.stop(signal.SIGKILL, timeout_s=5)
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.stop(signal.SIGTERM, timeout_s=5)
+
+
+class ArduCopter(SitlAutopilot):
     """An ArduCopter SITL quad at real time (speedup 1) in ``workdir``, instance ``instance``.
 
     Its defaults file is the build's ``copter.parm`` plus ``params`` (written to the working
@@ -361,20 +405,6 @@ class ArduCopter:
         except (PermissionError, OSError):
             return False
         return True
-
-    @property
-    def pid(self) -> int:
-        assert self.process is not None
-        return self.process.proc.pid
-
-    def kill(self) -> None:
-        """SIGKILL: the links drop at once, as when the flight controller dies."""
-        assert self.process is not None
-        self.process.stop(signal.SIGKILL, timeout_s=5)
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.stop(signal.SIGTERM, timeout_s=5)
 
 
 def write_bridge_config(
@@ -681,6 +711,23 @@ class GroundStation:
                     f"the autopilot said: {texts}"
                 )
             time.sleep(0.02)
+
+
+def motor_commands(protocol: str, msg: can.Message) -> dict[int, float] | None:
+    """The motor commands one command frame carries, by motor (0-based: CKESC RawCommand_12b
+    group g carries motors 4(g-1)..4g-1 as throttles; an FT SetCurrent carries its ESC's motor
+    as a current in A); None for any other frame. A frame that does not decode raises
+    CodecError (the callers count those)."""
+    if protocol == "ckesc":
+        frame: Any = ckesc.decode(msg)
+        if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+            return None
+        first = 4 * (frame.message.group - 1)
+        return {first + i: float(v) for i, v in enumerate(frame.message.throttles)}
+    frame = ft.decode(msg)
+    if frame is None or not isinstance(frame.message, ft.SetCurrent):
+        return None
+    return {frame.esc_id - 1: frame.message.current_a}
 
 
 def stream_answers(bridge_log: str, message: str) -> str:

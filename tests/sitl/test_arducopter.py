@@ -29,7 +29,6 @@ import bisect
 import contextlib
 import itertools
 import os
-import signal
 import statistics
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -58,13 +57,14 @@ from .conftest import (
     from_autopilot,
     mavlink,
     measured,
+    motor_commands,
     reserved_instance,
     start_bridge,
     start_sim,
     stream_answers,
     udp_drops,
     wait_until,
-    widen_receive_buffer,
+    wide_observer,
     write_bridge_config,
 )
 
@@ -110,42 +110,26 @@ class Command:
     value: float
 
 
-def ckesc_commands(
-    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+def decode_commands(
+    protocol: str, frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
 ) -> list[list[Command]]:
-    """Per CKESC RawCommand_12b frame, the four motors' commands (a quad: group 1 only).
-    Frames that do not decode go to ``malformed``."""
+    """Per command frame (CKESC: all four motors; FT: one ESC), its commands. Frames that do
+    not decode, and CKESC groups past the quad's first, go to ``malformed``."""
     out = []
     for t, msg in frames:
         try:
-            frame = ckesc.decode(msg)
+            commands = motor_commands(protocol, msg)
         except CodecError as exc:
             if malformed is not None:
                 malformed.append(f"{msg}: {exc}")
             continue
-        if frame is not None and isinstance(frame.message, ckesc.RawCommand12b):
-            group = frame.message.group
-            if group != 1 and malformed is not None:
-                malformed.append(f"{msg}: RawCommand_12b group {group} on a quad")
-            out.append([Command(t, i, float(v)) for i, v in enumerate(frame.message.throttles)])
-    return out
-
-
-def ft_commands(
-    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
-) -> list[list[Command]]:
-    """Per FT SetCurrent frame (one ESC each), its command. Frames that do not decode go to
-    ``malformed``."""
-    out = []
-    for t, msg in frames:
-        try:
-            frame = ft.decode(msg)
-        except CodecError as exc:
-            if malformed is not None:
-                malformed.append(f"{msg}: {exc}")
+        if commands is None:
             continue
-        if frame is not None and isinstance(frame.message, ft.SetCurrent):
-            out.append([Command(t, frame.esc_id - 1, frame.message.current_a)])
+        if max(commands) > 3:
+            if malformed is not None:
+                malformed.append(f"{msg}: commands for motors {sorted(commands)} on a quad")
+            continue
+        out.append([Command(t, motor, value) for motor, value in commands.items()])
     return out
 
 
@@ -173,8 +157,7 @@ class Rig:
         with self.observer._lock:
             frames = list(self.observer.frames)
         frames.sort(key=lambda f: f[0])
-        decode = ckesc_commands if self.protocol == "ckesc" else ft_commands
-        self.commands = decode(frames, self.malformed)
+        self.commands = decode_commands(self.protocol, frames, self.malformed)
 
     def telemetry_frames(self) -> list[tuple[float, can.Message]]:
         with self.observer._lock:
@@ -246,8 +229,7 @@ def bridge_spinning(rig: Rig, since: float) -> bool:
     """A command frame with some motor non-zero since ``since``."""
     with rig.observer._lock:
         frames = [(t, m) for t, m in rig.observer.frames if t >= since]
-    decode = ckesc_commands if rig.protocol == "ckesc" else ft_commands
-    return any(c.value > 0 for frame in decode(frames) for c in frame)
+    return any(c.value > 0 for frame in decode_commands(rig.protocol, frames) for c in frame)
 
 
 def message_interval(gcs: GroundStation, msg_id: int, hz: float) -> tuple[int, float]:
@@ -395,9 +377,9 @@ def fly(flight: Flight, tap: MavTap) -> None:
     arm_and_take_off(flight, 3.0)
     time.sleep(2.0)
     flight.events["stall"] = time.monotonic()
-    ap.process.send_signal(signal.SIGSTOP)  # type: ignore[union-attr]
+    ap.pause()
     time.sleep(1.0)
-    ap.process.send_signal(signal.SIGCONT)  # type: ignore[union-attr]
+    ap.resume()
     flight.events["resume"] = time.monotonic()
     time.sleep(RECOVERY_WAIT_S)
     sent = gcs.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
@@ -425,9 +407,8 @@ def flight(
             ("ft", "ft", FT_LINK, 192, ft_current, 1e-4),
         ):
             can_port = free_port()
-            observer = Observer(can_port)
+            observer = wide_observer(can_port)
             stack.callback(observer.close)
-            widen_receive_buffer(observer.bus)
             sim = start_sim(can_port, workdir / f"sim-{name}.log", protocol)
             stack.callback(sim.stop)
             config = write_bridge_config(
