@@ -52,6 +52,10 @@ FALLBACK_RATES_HZ: Final = (200.0, 100.0, 50.0, 25.0, 10.0)
 """The lower rates asked for, in turn, below the configured one, when a rate is refused."""
 NEAR: Final = 0.8
 """A stream arriving at this fraction of the asked rate or more is what was asked for."""
+FORGOTTEN: Final = 0.4
+"""A stream that met the rate it was ACCEPTED at and now arrives under this fraction of it was
+forgotten (an autopilot that restarted), not limited: it is asked again. Well under NEAR, so
+that a rate measured a little low over one second on a busy machine asks nothing."""
 UNANSWERED_BEFORE_STEP: Final = 3
 """Requests the autopilot (heard, so present) neither answered nor followed before the next
 lower rate is tried."""
@@ -71,9 +75,9 @@ def rate_ladder(wanted_hz: float) -> tuple[float, ...]:
 class StreamRequest:
     """The negotiation of one message's rate with one autopilot.
 
-    Call :meth:`due` once a check period (a second) with the rate arriving now; send the
-    request it returns (a rate in Hz), if any, and pass the autopilot's COMMAND_ACK for it to
-    :meth:`on_ack`.
+    Call :meth:`observe` every check period (a second) and :meth:`due` when it is this
+    request's turn, each with the rate arriving now; send the request :meth:`due` returns (a
+    rate in Hz), if any, and pass the autopilot's COMMAND_ACK for it to :meth:`on_ack`.
     """
 
     name: str
@@ -109,6 +113,13 @@ class StreamRequest:
         """The autopilot ACCEPTED :attr:`asked_hz` (and the stream has not stopped since)."""
         return self._accepted
 
+    def observe(self, arriving_hz: float) -> None:
+        """The rate arriving now, every check: also in checks where another request took the
+        turn (one request a check) and :meth:`due` was not called, so that a stream that met
+        the asked rate is known to have done so."""
+        if self._ladder and arriving_hz >= NEAR * self.asked_hz:
+            self._was_near = True
+
     def due(self, arriving_hz: float, autopilot_heard: bool) -> float | None:
         """The rate to ask for now, or None when nothing needs asking. ``arriving_hz``: the
         message's arriving rate over about the last second (0: none); ``autopilot_heard``:
@@ -130,10 +141,13 @@ class StreamRequest:
                 self._was_near = True
                 return None
             if self._accepted and self._was_near:
-                # It came at the rate it ACCEPTED and no longer does: an autopilot that
-                # restarted forgot the interval, and one that restarts within a check (ArduCopter
-                # SITL, ~1 s) never stops the stream for a whole one. Its limit it is not: ask
-                # again (measured: taken as its limit, HEARTBEAT stayed at 2 Hz for the flight).
+                # It came at the rate it ACCEPTED, so that rate is not beyond it. A second a
+                # little under it is the measurement's (a busy machine); far under it, the
+                # autopilot restarted and forgot the interval: one that restarts within a check
+                # (ArduCopter SITL, ~1 s) never stops the stream for a whole one. Ask again
+                # (before: taken as its limit, HEARTBEAT stayed at 2 Hz for the flight).
+                if arriving_hz >= FORGOTTEN * self.asked_hz:
+                    return None
                 log.info(
                     "%s sends %s at %.0f Hz, below the %.0f Hz it ACCEPTED and sent: asking again",
                     self.source,

@@ -131,8 +131,13 @@ def test_a_rate_that_falls_after_it_was_accepted_and_met_is_asked_again(
     stream = request(20)
     assert stream.due(1.0, autopilot_heard=True) == 20
     stream.on_ack(MAV_RESULT_ACCEPTED)
-    assert stream.due(20.0, autopilot_heard=True) is None
+    # The check where it arrived at 20 Hz was the other request's turn: observed, not due.
+    stream.observe(20.0)
     with caplog.at_level(logging.INFO):
+        # A second measured a little low (a busy machine) is neither forgotten nor a limit
+        # worth asking about again.
+        assert stream.due(15.0, autopilot_heard=True) is None
+        assert stream.accepted
         assert stream.due(2.0, autopilot_heard=True) == 20  # restarted: asked again
         assert not stream.accepted
         stream.on_ack(MAV_RESULT_ACCEPTED)
