@@ -142,8 +142,16 @@ def test_a_rate_that_falls_after_it_was_accepted_and_met_is_asked_again(
         assert not stream.accepted
         stream.on_ack(MAV_RESULT_ACCEPTED)
         assert stream.due(19.0, autopilot_heard=True) is None
-    assert "below the 20 Hz it ACCEPTED and sent: asking again" in caplog.text
+    assert "far below the 20 Hz it ACCEPTED: asking again" in caplog.text
     assert "taking that as its limit" not in caplog.text
+    # Restarted before the rate was ever measured at 20 Hz: asked again once; an autopilot
+    # that ACCEPTS again and still sends 1 Hz has that as its limit (no request every second).
+    fresh = request(20)
+    assert fresh.due(0.0, autopilot_heard=True) == 20
+    fresh.on_ack(MAV_RESULT_ACCEPTED)
+    assert fresh.due(1.0, autopilot_heard=True) == 20
+    fresh.on_ack(MAV_RESULT_ACCEPTED)
+    assert [fresh.due(1.0, autopilot_heard=True) for _ in range(3)] == [None, None, None]
     # Accepted but never met: its limit, not asked again.
     limited = request(200)
     assert limited.due(10.0, autopilot_heard=True) == 200
