@@ -146,11 +146,13 @@ class StreamRequest:
                 # It came at the rate it ACCEPTED, so that rate is not beyond it: a second a
                 # little under it is the measurement's (a busy machine).
                 return None
-            if self._accepted and arriving_hz < FORGOTTEN * self.asked_hz and not self._asked_again:
-                # Far under what it ACCEPTED: an autopilot that restarted forgot the interval,
-                # and one that restarts within a check (ArduCopter SITL, ~1 s) never stops the
-                # stream for a whole one. Ask once more before taking it as its limit (before:
-                # HEARTBEAT stayed at 2 Hz of 20 for the flight, a motor test 0.4 s late).
+            # Far under what it ACCEPTED (under FORGOTTEN of a rate it met, a tenth of one it
+            # never met): an autopilot that restarted forgot the interval, and one that
+            # restarts within a check (ArduCopter SITL, ~1 s) never stops the stream for a
+            # whole one. Ask once more, still taking the old ACCEPTED as the answer should this
+            # one go unanswered (before: HEARTBEAT stayed at 2 Hz of 20, a motor test 0.4 s late).
+            forgotten = FORGOTTEN if self._was_near else FORGOTTEN / 4
+            if self._accepted and arriving_hz < forgotten * self.asked_hz and not self._asked_again:
                 log.info(
                     "%s sends %s at %.0f Hz, far below the %.0f Hz it ACCEPTED: asking again",
                     self.source,
@@ -158,9 +160,9 @@ class StreamRequest:
                     arriving_hz,
                     self.asked_hz,
                 )
-                self._reset()
                 self._asked_again = True
-            elif self._accepted:
+                return self.asked_hz
+            if self._accepted:
                 if not self._limit_logged:
                     self._limit_logged = True
                     log.warning(
