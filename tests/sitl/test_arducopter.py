@@ -767,7 +767,7 @@ def test_ardupilot_motor_test_within_a_heartbeat_period(flight: Flight, rig_name
     ArduCopter grants) of the test's first output reaching the bridge, plus a tick and the
     machine's slack. Not from the first frame: the bridge learns ArduCopter's arming from its
     HEARTBEAT only (SERVO_OUTPUT_RAW carries none), so up to one period of the test's outputs
-    go out as zeros (measured 0-49 ms; on the first frame in some tests, not in others)."""
+    go out as zeros (measured 0-53 ms; on the first frame in some tests, not in others)."""
     rig = rig_of(flight, rig_name)
     delays = []
     for test in motor_tests_of(flight):
