@@ -1064,6 +1064,8 @@ class MavlinkLink:
         ]
         if self._pending_request is self._output_request:
             streams.reverse()  # take turns, so that neither starves the other
+        for request, _, arriving_hz in streams:
+            request.observe(arriving_hz)
         for request, msg_id, arriving_hz in streams:
             rate_hz = request.due(arriving_hz, heard)
             if rate_hz is not None:

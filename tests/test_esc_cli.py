@@ -17,7 +17,7 @@ from typing import Any
 
 import can
 import pytest
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, Daemon, free_port
+from conftest import ESC_BRIDGE, Daemon, can_args, free_port
 
 from bridge.cli import main
 from bridge.escs import ckesc
@@ -613,16 +613,7 @@ def test_a_bus_that_cannot_be_opened_is_exit_1(capsys: pytest.CaptureFixture[str
 
 
 def multicast_flags(port: int) -> list[str]:
-    return [
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        MULTICAST_GROUP,
-        "--can-option",
-        f"port={port}",
-        "--can-option",
-        "hop_limit=0",
-    ]
+    return can_args(port)
 
 
 def run_esc(port: int, *args: str) -> subprocess.CompletedProcess[str]:

@@ -19,7 +19,7 @@ from typing import Any
 import can
 import pytest
 import zenoh
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, free_port, multicast_bus
+from conftest import ESC_BRIDGE, MULTICAST_GROUP, can_args, free_port, multicast_bus
 
 from bridge.cli import main
 from bridge.config import ZenohConfig
@@ -62,19 +62,6 @@ def by_motor(rows: list[Row], vehicle: str | None = None) -> dict[int, Row]:
         for row in rows
         if vehicle is None or row["vehicle"].split(" ")[0] == vehicle
     }
-
-
-def can_args(port: int) -> list[str]:
-    return [
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        MULTICAST_GROUP,
-        "--can-option",
-        f"port={port}",
-        "--can-option",
-        "hop_limit=0",
-    ]
 
 
 def monitor(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess[str]:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import can
 import pytest
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, Observer, multicast_bus
+from conftest import ESC_BRIDGE, Observer, can_args, multicast_bus
 
 from bridge.config import build_config
 from bridge.escs import ckesc, ft
@@ -140,16 +140,7 @@ def test_spin_requests_are_checked() -> None:
 
 @pytest.fixture
 def bus_args(can_port: int) -> list[str]:
-    return [
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        MULTICAST_GROUP,
-        "--can-option",
-        f"port={can_port}",
-        "--can-option",
-        "hop_limit=0",
-    ]
+    return can_args(can_port)
 
 
 def simulator(can_port: int, protocol: str, ids: list[int]) -> Simulator:

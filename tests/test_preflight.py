@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, ROOT, Daemon, Observer
+from conftest import ESC_BRIDGE, ROOT, Daemon, Observer, can_args
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -525,17 +525,7 @@ def gcs() -> Iterator[socket.socket]:
 
 
 def bus_flags(can_port: int) -> list[str]:
-    return [
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        MULTICAST_GROUP,
-        "--can-option",
-        f"port={can_port}",
-        "--can-option",
-        "hop_limit=0",
-        "--no-zenoh-scouting",
-    ]
+    return [*can_args(can_port), "--no-zenoh-scouting"]
 
 
 def assert_nothing_opened(gcs: socket.socket, observer: Observer) -> None:

@@ -38,10 +38,13 @@ were really sent (within ``max_drift`` of how long they waited) and their age sh
   ``_PAUSE_SILENCE_NS`` whose remote time moved on by less than half of it opens a check: when
   the next ``_PAUSE_CONFIRM_SAMPLES`` samples arrive in the rhythm the remote clock gives them
   (remote and local time elapsed agree within a quarter, over at least ``_PAUSE_MIN_SPAN_NS``),
-  the autopilot runs again, and the estimate is re-seeded from their least offset. A backlog
-  released by a frozen link or read late by a stalled process fails the check at once: it
-  arrives faster than its remote times advance. Cost: the first few inputs after a pause are
-  judged old (safe values), ~20 ms at 200 Hz.
+  the autopilot runs again, and the estimate is re-seeded from their least offset (when that is
+  larger than the estimate by half the silence: else no clock stood still). A backlog released
+  by a frozen link or read late by a stalled process fails the check: it arrives faster than
+  its remote times advance. For ``_PAUSE_RETRY_NS`` after the first sample a failed check starts
+  again from the failing sample, since a SITL resumes unevenly (a burst, a late first interval);
+  a backlog keeps failing, and the rhythm after it carries the offset already held. Cost: the
+  first few inputs after a pause are judged old (safe values), ~20 ms at 200 Hz.
 - A remote time of 0 or None (a sender that leaves the field empty): the receive time is all
   there is.
 - A remote time equal to the newest one: once, that is the same instant (SERVO_OUTPUT_RAW ports
@@ -87,6 +90,11 @@ _PAUSE_CONFIRM_SAMPLES: Final = 4
 _PAUSE_MIN_SPAN_NS: Final = 15_000_000
 _PAUSE_RATE_TOLERANCE: Final = 0.25
 _PAUSE_SLACK_NS: Final = 2_000_000  # transport jitter between the first and last sample
+# For this long after the first sample after a pause, a sample that breaks the rhythm starts
+# the check again from itself rather than ending it: a SITL resumes unevenly (ArduCopter sends
+# ~20 outputs within 5 ms first, PX4's first interval after SIGCONT was 15 ms for 8 ms of its
+# clock), and a check ended on that judged every input ~1 s old until the landing.
+_PAUSE_RETRY_NS: Final = 250_000_000
 
 
 class AutopilotClock:
@@ -168,7 +176,7 @@ class AutopilotClock:
             local_gap_ns = received_ns - self._newest_received_ns
             remote_ns = (self._newest_us + step_us) * _NS_PER_US
             sample = received_ns - remote_ns
-            resumed_offset = self._follow_pause(step_ns, local_gap_ns, sample)
+            resumed_offset = self._follow_pause(step_ns, local_gap_ns, sample, offset)
             if resumed_offset is not None:
                 self.reseeds += 1
                 self._offset_ns = offset = resumed_offset
@@ -203,12 +211,17 @@ class AutopilotClock:
             self._offset_ns = offset = sample
         return remote_ns + offset
 
-    def _follow_pause(self, step_ns: int, local_gap_ns: int, sample_ns: int) -> int | None:
+    def _follow_pause(
+        self, step_ns: int, local_gap_ns: int, sample_ns: int, current_ns: int
+    ) -> int | None:
         """Open, advance or close the pause check with a sample ``step_ns`` of remote and
-        ``local_gap_ns`` of local time after the newest, of offset ``sample_ns``; the offset to
-        re-seed from when the autopilot was paused and runs again, else None."""
+        ``local_gap_ns`` of local time after the newest, of offset ``sample_ns`` (the estimate
+        is ``current_ns``); the offset to re-seed from when the autopilot was paused and runs
+        again, else None."""
         if local_gap_ns > _PAUSE_SILENCE_NS and 2 * step_ns < local_gap_ns:
-            self._pause = [0, 0, 0, sample_ns]  # silent, and its clock stood still meanwhile
+            # Silent, and its clock stood still meanwhile. The check: samples, remote span,
+            # local span, least offset; and the local time since this first sample.
+            self._pause = [0, 0, 0, sample_ns, 0]
             return None
         check = self._pause
         if check is None:
@@ -220,13 +233,22 @@ class AutopilotClock:
         check[1] += step_ns
         check[2] += local_gap_ns
         check[3] = min(check[3], sample_ns)
+        check[4] += local_gap_ns
         remote_span, local_span = check[1], check[2]
         if abs(remote_span - local_span) > _PAUSE_RATE_TOLERANCE * local_span + _PAUSE_SLACK_NS:
-            self._pause = None  # a backlog (or no clock): its times run ahead of its arrival
+            # Out of rhythm: a backlog (or no clock), its times running ahead of its arrival;
+            # or a SITL resuming unevenly. Early on, judge again from this sample: a backlog
+            # keeps failing, and the rhythm that follows it carries its true offset anyway.
+            since_open = check[4]
+            self._pause = [0, 0, 0, sample_ns, since_open] if since_open < _PAUSE_RETRY_NS else None
             return None
         if check[0] < _PAUSE_CONFIRM_SAMPLES or local_span < _PAUSE_MIN_SPAN_NS:
             return None
         self._pause = None
+        if check[3] - current_ns < _PAUSE_SILENCE_NS // 2:
+            # The rhythm carries the offset already held: no clock stood still (this process
+            # stalled and read a queue), nothing to re-seed.
+            return None
         return check[3]
 
     def _seed(self, remote_us: int, received_ns: int) -> int:

@@ -52,6 +52,10 @@ FALLBACK_RATES_HZ: Final = (200.0, 100.0, 50.0, 25.0, 10.0)
 """The lower rates asked for, in turn, below the configured one, when a rate is refused."""
 NEAR: Final = 0.8
 """A stream arriving at this fraction of the asked rate or more is what was asked for."""
+FORGOTTEN: Final = 0.4
+"""A stream that met the rate it was ACCEPTED at and now arrives under this fraction of it was
+forgotten (an autopilot that restarted), not limited: it is asked again. Well under NEAR, so
+that a rate measured a little low over one second on a busy machine asks nothing."""
 UNANSWERED_BEFORE_STEP: Final = 3
 """Requests the autopilot (heard, so present) neither answered nor followed before the next
 lower rate is tried."""
@@ -71,9 +75,9 @@ def rate_ladder(wanted_hz: float) -> tuple[float, ...]:
 class StreamRequest:
     """The negotiation of one message's rate with one autopilot.
 
-    Call :meth:`due` once a check period (a second) with the rate arriving now; send the
-    request it returns (a rate in Hz), if any, and pass the autopilot's COMMAND_ACK for it to
-    :meth:`on_ack`.
+    Call :meth:`observe` every check period (a second) and :meth:`due` when it is this
+    request's turn, each with the rate arriving now; send the request :meth:`due` returns (a
+    rate in Hz), if any, and pass the autopilot's COMMAND_ACK for it to :meth:`on_ack`.
     """
 
     name: str
@@ -88,6 +92,7 @@ class StreamRequest:
     def __post_init__(self) -> None:
         self._ladder: Sequence[float] = rate_ladder(self.wanted_hz) if self.wanted_hz > 0 else ()
         self._was_arriving = False
+        self._asked_again = False  # asked again once after a rate far under the ACCEPTED one
         self._reset()
 
     def _reset(self) -> None:
@@ -97,6 +102,7 @@ class StreamRequest:
         self._unanswered = 0  # requests sent while the autopilot was there, not answered
         self._limit_logged = False
         self._silence_logged = False
+        self._was_near = False  # arrived at the asked rate since the last reset
 
     @property
     def asked_hz(self) -> float:
@@ -107,6 +113,13 @@ class StreamRequest:
     def accepted(self) -> bool:
         """The autopilot ACCEPTED :attr:`asked_hz` (and the stream has not stopped since)."""
         return self._accepted
+
+    def observe(self, arriving_hz: float) -> None:
+        """The rate arriving now, every check: also in checks where another request took the
+        turn (one request a check) and :meth:`due` was not called, so that a stream that met
+        the asked rate is known to have done so."""
+        if self._ladder and arriving_hz >= NEAR * self.asked_hz:
+            self._was_near = True
 
     def due(self, arriving_hz: float, autopilot_heard: bool) -> float | None:
         """The rate to ask for now, or None when nothing needs asking. ``arriving_hz``: the
@@ -126,7 +139,29 @@ class StreamRequest:
         else:
             self._was_arriving = True
             if arriving_hz >= NEAR * self.asked_hz:
+                self._was_near = True
+                self._asked_again = False
                 return None
+            if self._accepted and self._was_near and arriving_hz >= FORGOTTEN * self.asked_hz:
+                # It came at the rate it ACCEPTED, so that rate is not beyond it: a second a
+                # little under it is the measurement's (a busy machine).
+                return None
+            # Far under what it ACCEPTED (under FORGOTTEN of a rate it met, a tenth of one it
+            # never met): an autopilot that restarted forgot the interval, and one that
+            # restarts within a check (ArduCopter SITL, ~1 s) never stops the stream for a
+            # whole one. Ask once more, still taking the old ACCEPTED as the answer should this
+            # one go unanswered (before: HEARTBEAT stayed at 2 Hz of 20, a motor test 0.4 s late).
+            forgotten = FORGOTTEN if self._was_near else FORGOTTEN / 4
+            if self._accepted and arriving_hz < forgotten * self.asked_hz and not self._asked_again:
+                log.info(
+                    "%s sends %s at %.0f Hz, far below the %.0f Hz it ACCEPTED: asking again",
+                    self.source,
+                    self.name,
+                    arriving_hz,
+                    self.asked_hz,
+                )
+                self._asked_again = True
+                return self.asked_hz
             if self._accepted:
                 if not self._limit_logged:
                     self._limit_logged = True

@@ -416,3 +416,39 @@ def test_a_frozen_link_that_releases_its_backlog_faster_than_sent_is_not_a_pause
     assert min(ages[:100]) > 400 * MS  # the backlog is known to be old
     assert ages[-1] < 2 * MS  # once the queue is drained, live inputs are fresh
     assert clock.reseeds == 0
+
+
+@pytest.mark.parametrize("shape", ["burst", "jitter"])
+def test_a_sitl_that_resumes_unevenly_runs_again_within_a_few_inputs(shape: str) -> None:
+    """SIGCONT of a real SITL: ArduCopter first sends ~20 outputs within 5 ms, its clock running
+    0.1 s ahead, then its 200 Hz rhythm; PX4's first interval was 15 ms for 8 ms of its clock.
+    Either ended the pause check, and every input after it looked ~0.9 s old until landing."""
+    period_ns = 5 * MS
+    clock = AutopilotClock(32)
+    remote_us = 60_000_000
+    read = LOCAL_START_NS
+    for _ in range(400):  # 2 s at 200 Hz
+        remote_us += 5000
+        read += period_ns
+        clock.produced_ns(remote_us, read + 300_000)
+    read += S  # stopped for 1 s, its clock with it
+    resumed = []
+    if shape == "burst":
+        for _ in range(20):
+            remote_us += 5000
+            read += period_ns // 20
+            resumed.append((remote_us, read))
+    else:
+        remote_us += 5000
+        read += 15 * MS
+        resumed.append((remote_us, read))
+        remote_us += 5000
+        read += 100_000
+        resumed.append((remote_us, read))
+    for _ in range(40):  # then its rhythm
+        remote_us += 5000
+        read += period_ns
+        resumed.append((remote_us, read))
+    ages_ms = [(at - clock.produced_ns(us, at)) / MS for us, at in resumed]
+    assert all(age < 2 for age in ages_ms[-20:]), ages_ms
+    assert clock.reseeds == 1

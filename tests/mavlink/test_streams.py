@@ -120,3 +120,40 @@ def test_in_progress_keeps_the_rate() -> None:
     stream.on_ack(MAV_RESULT_IN_PROGRESS)
     assert not stream.accepted
     assert stream.due(10.0, autopilot_heard=True) == 200
+
+
+def test_a_rate_that_falls_after_it_was_accepted_and_met_is_asked_again(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """ArduCopter SITL killed and restarted within a second: its HEARTBEAT never stops for a
+    whole check, the new boot forgot the interval and sends a few Hz. The old ACCEPTED must not
+    make that rate its limit; one that never reached the rate keeps its limit (PX4's ~124 Hz)."""
+    stream = request(20)
+    assert stream.due(1.0, autopilot_heard=True) == 20
+    stream.on_ack(MAV_RESULT_ACCEPTED)
+    # The check where it arrived at 20 Hz was the other request's turn: observed, not due.
+    stream.observe(20.0)
+    with caplog.at_level(logging.INFO):
+        # A second measured a little low (a busy machine) is neither forgotten nor a limit
+        # worth asking about again.
+        assert stream.due(15.0, autopilot_heard=True) is None
+        assert stream.accepted
+        assert stream.due(2.0, autopilot_heard=True) == 20  # restarted: asked again
+        assert stream.accepted  # an unanswered second ask changes nothing
+        stream.on_ack(MAV_RESULT_ACCEPTED)
+        assert stream.due(19.0, autopilot_heard=True) is None
+    assert "far below the 20 Hz it ACCEPTED: asking again" in caplog.text
+    assert "taking that as its limit" not in caplog.text
+    # Restarted before the rate was ever measured at 20 Hz: asked again once; an autopilot
+    # that ACCEPTS again and still sends 1 Hz has that as its limit (no request every second).
+    fresh = request(20)
+    assert fresh.due(0.0, autopilot_heard=True) == 20
+    fresh.on_ack(MAV_RESULT_ACCEPTED)
+    assert fresh.due(1.0, autopilot_heard=True) == 20
+    fresh.on_ack(MAV_RESULT_ACCEPTED)
+    assert [fresh.due(1.0, autopilot_heard=True) for _ in range(3)] == [None, None, None]
+    # Accepted but never met: its limit, not asked again.
+    limited = request(200)
+    assert limited.due(10.0, autopilot_heard=True) == 200
+    limited.on_ack(MAV_RESULT_ACCEPTED)
+    assert [limited.due(124.0, autopilot_heard=True) for _ in range(3)] == [None, None, None]

@@ -1,186 +1,29 @@
-"""Harness for flying a real PX4 SITL (SIH quad, no Gazebo) through the bridge.
+"""The PX4 harness for tests/sitl/test_px4.py: a real PX4 SITL (SIH quad, no Gazebo).
 
-Two parts. The first section holds generic pieces any real-autopilot test needs (a logged
-subprocess, the bridge and the simulated ESCs through their CLI, a UDP tap that records what
-the autopilot sends the bridge, a pymavlink ground station); they are kept apart so that they
-can move into ``tests/sitl/conftest.py`` beside the ArduCopter harness. The second section is
-PX4's: finding and extracting the build, claiming an instance number whose ports are free,
-starting, stalling, killing and restarting PX4, and adding onboard MAVLink links to it.
+Finding and extracting the build (``$ESC_BRIDGE_PX4``), claiming an instance number whose ports
+are free, starting, stalling, killing and restarting PX4, adding onboard MAVLink links to it,
+and the UDP tap that records what PX4 sends a bridge.
+The generic pieces (processes, the bridge and the simulated ESCs through their CLI, waits,
+instance locks, the ground station) are the package's, in ``tests/sitl/conftest.py``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import multiprocessing
 import os
-import signal
 import socket
 import subprocess
 import tarfile
-import threading
-import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-# conftest sets MAVLINK20 before pymavlink is first imported (MAVLink 2, as PX4 speaks).
-import _udp_tap
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, ROOT
-from pymavlink import mavutil
+from conftest import ROOT
 
-from bridge.mavlink import load_dialect
-
-dialect: Any = load_dialect()
-
-# =============================================================================================
-# Generic helpers (candidates for tests/sitl/conftest.py, shared with the ArduCopter harness)
-# =============================================================================================
-
-
-def wait_until(
-    condition: Callable[[], bool], timeout_s: float, what: str, poll_s: float = 0.02
-) -> float:
-    """Poll ``condition`` until it holds; its monotonic time. Fails naming ``what``."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return time.monotonic()
-        time.sleep(poll_s)
-    raise AssertionError(f"{what}: not within {timeout_s} s")
-
-
-class LoggedProcess:
-    """A subprocess in a process group of its own, its output in a file (never a pipe: a
-    full pipe would block a daemon that logs more than a pipe holds in a long flight)."""
-
-    def __init__(
-        self, args: Sequence[str], log_path: Path, env: dict[str, str] | None = None
-    ) -> None:
-        self.args = list(args)
-        self.log_path = log_path
-        self._log: IO[bytes] = log_path.open("ab")
-        self.proc = subprocess.Popen(
-            self.args,
-            stdout=self._log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-            start_new_session=True,
-        )
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def output(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
-        """Signal the whole group (a stopped process is continued first so it can act on
-        it), then kill what is left after ``timeout_s``; the exit status."""
-        if self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.proc.pid, signal.SIGCONT)
-                os.killpg(self.proc.pid, sig)
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(5)
-        # Children the leader left behind (the bridge's loop exits by itself; anything else
-        # of the group must not outlive the test).
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        self._log.close()
-        return self.proc.returncode
-
-
-def can_args(can_port: int) -> list[str]:
-    """The CLI flags of a udp_multicast bus of its own (hop limit 0: never off this machine)."""
-    return [
-        "--can-interface",
-        "udp_multicast",
-        "--can-channel",
-        MULTICAST_GROUP,
-        "--can-option",
-        f"port={can_port}",
-        "--can-option",
-        "hop_limit=0",
-    ]
-
-
-def write_bridge_config(
-    path: Path,
-    *,
-    source: str,
-    autopilot_system_id: int,
-    component_id: int,
-    protocol: str = "ckesc",
-    stream_rate_hz: float = 200.0,
-    input_timeout_ms: int = 100,
-) -> Path:
-    """A bridge configuration for the keys the CLI has no flag for (the autopilot's system id,
-    the bridge's component id); the rest comes as flags."""
-    path.write_text(
-        "[mavlink]\n"
-        f'source = "{source}"\n'
-        f"autopilot_system_id = {autopilot_system_id}\n"
-        f"component_id = {component_id}\n"
-        f"stream_rate_hz = {stream_rate_hz}\n"
-        "[output]\n"
-        f'protocol = "{protocol}"\n'
-        f"input_timeout_ms = {input_timeout_ms}\n"
-        "[mixer]\n"
-        'name = "passthrough-4"\n'
-        "[escs]\n"
-        "ids = [1, 2, 3, 4]\n"
-    )
-    return path
-
-
-def start_bridge(
-    config: Path, mavlink_url: str, can_port: int, log_path: Path, *extra: str
-) -> LoggedProcess:
-    """``esc-bridge run`` through its CLI on the bus ``can_port``."""
-    return LoggedProcess(
-        [
-            ESC_BRIDGE,
-            "run",
-            "--config",
-            str(config),
-            "--mavlink",
-            mavlink_url,
-            *can_args(can_port),
-            # No Zenoh peer discovery: parallel test runs must never see each other.
-            "--no-zenoh-scouting",
-            *extra,
-        ],
-        log_path,
-    )
-
-
-def start_sim_escs(can_port: int, log_path: Path, protocol: str = "ckesc") -> LoggedProcess:
-    """``esc-bridge sim``: four simulated ESCs, IDs (and CKESC throttle channels) 1..4."""
-    return LoggedProcess(
-        [
-            ESC_BRIDGE,
-            "sim",
-            "--protocol",
-            protocol,
-            "--escs",
-            "4",
-            *can_args(can_port),
-            "--status-interval",
-            "60",
-        ],
-        log_path,
-    )
+from . import _udp_tap
+from .conftest import Process, SitlAutopilot, claimed_instance, dialect, port_free, wait_until
 
 
 class UdpTap:
@@ -242,118 +85,6 @@ class UdpTap:
             self._process.kill()
 
 
-class GroundStation:
-    """A pymavlink ground station on an autopilot's GCS port: it speaks first (a HEARTBEAT a
-    second), so the autopilot answers to its own port, and it keeps every message it gets,
-    decoded with the project's dialect (ESC_INFO, ESC_STATUS), with its receive time."""
-
-    def __init__(self, url: str, system: int = 255, component: int = 190) -> None:
-        self.conn: Any = mavutil.mavlink_connection(
-            url, source_system=system, source_component=component
-        )
-        self.mav: Any = dialect.MAVLink(self.conn, srcSystem=system, srcComponent=component)
-        """The project dialect's encoder with this station's ids."""
-        self._parser: Any = dialect.MAVLink(None)
-        self._parser.robust_parsing = True
-        self.messages: list[tuple[float, Any]] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="gcs", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        next_beat = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if now >= next_beat:
-                with contextlib.suppress(OSError):
-                    self.send(
-                        self.mav.heartbeat_encode(
-                            dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 4
-                        )
-                    )
-                next_beat = now + 1.0
-            try:
-                data = self.conn.recv()
-            except OSError:
-                time.sleep(0.01)
-                continue
-            if not data:
-                time.sleep(0.002)
-                continue
-            stamp = time.monotonic()
-            batch = [m for m in self._parser.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
-            with self._lock:
-                self.messages.extend((stamp, m) for m in batch)
-
-    def send(self, msg: Any) -> None:
-        self.conn.write(msg.pack(self.mav))
-
-    def received(
-        self, kind: str, after: float = 0.0, sender: tuple[int, int] | None = None
-    ) -> list[tuple[float, Any]]:
-        with self._lock:
-            return [
-                (t, m)
-                for t, m in self.messages
-                if t >= after
-                and m.get_type() == kind
-                and (sender is None or (m.get_srcSystem(), m.get_srcComponent()) == sender)
-            ]
-
-    def command(
-        self,
-        target: tuple[int, int],
-        command: int,
-        params: Sequence[float],
-        timeout_s: float,
-        what: str,
-        retry_s: float = 1.0,
-    ) -> float:
-        """Send COMMAND_LONG until it is ACCEPTED (refusals are retried: pre-arm checks pass
-        a little after start-up); the monotonic time of the ACK. Fails naming ``what`` with
-        the last result."""
-        deadline = time.monotonic() + timeout_s
-        results: list[int] = []
-        while time.monotonic() < deadline:
-            sent = time.monotonic()
-            p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
-            self.send(self.mav.command_long_encode(*target, command, 0, *p))
-            answer_by = min(deadline, sent + retry_s)
-            while time.monotonic() < answer_by:
-                for t, ack in self.received("COMMAND_ACK", after=sent):
-                    if ack.command == command:
-                        if ack.result == dialect.MAV_RESULT_ACCEPTED:
-                            return t
-                        results.append(int(ack.result))
-                        break
-                else:
-                    time.sleep(0.02)
-                    continue
-                break
-            time.sleep(max(0.0, answer_by - time.monotonic()))
-        texts = [m.text for _, m in self.received("STATUSTEXT")][-5:]
-        raise AssertionError(
-            f"{what}: COMMAND_LONG {command} not accepted within {timeout_s} s "
-            f"(results {results[-5:]}, last STATUSTEXTs {texts})"
-        )
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.conn.close()
-
-
-def udp_port_free(port: int) -> bool:
-    """Nobody has ``port`` bound on this machine (any address: PX4 binds them all)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.bind(("0.0.0.0", port))
-        except OSError:
-            return False
-    return True
-
-
 # =============================================================================================
 # PX4
 # =============================================================================================
@@ -412,62 +143,33 @@ class Px4Ports:
     """A ground station sends here; PX4 answers to the sender."""
 
 
-class InstanceClaim:
-    """A PX4 instance number held for this test only: a lock file any other test process on
-    this machine also takes, a free PX4 server socket and every port of the instance free."""
-
-    def __init__(self, first: int = 0) -> None:
-        self.number = -1
-        self._lock: IO[bytes] | None = None
-        busy: list[str] = []
-        for n in [*range(first, MAX_INSTANCES), *range(first)]:
-            # Held open (and locked) for the instance's life, so not a with-block.
-            lock = Path(f"/tmp/esc-bridge-px4-instance-{n}.lock").open("ab")  # noqa: SIM115
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                lock.close()
-                busy.append(f"{n}: locked by another test")
-                continue
-            taken = [
-                port
-                for local, remote in _PORT_BASES
-                for port in (local + n, *(() if remote is None else (remote + n,)))
-                if not udp_port_free(port)
-            ]
-            if taken or self._server_running(n):
-                lock.close()
-                busy.append(f"{n}: ports {taken} in use" if taken else f"{n}: a PX4 runs")
-                continue
-            self.number, self._lock = n, lock
-            return
-        raise AssertionError(f"no free PX4 SITL instance: {'; '.join(busy)}")
-
-    @staticmethod
-    def _server_running(n: int) -> bool:
-        """A PX4 daemon of instance ``n`` answers on its command socket."""
-        path = f"/tmp/px4-sock-{n}"
-        if not os.path.exists(path):
-            return False
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            try:
-                sock.connect(path)
-            except OSError:
-                return False
-        return True
-
-    @property
-    def ports(self) -> Px4Ports:
-        n = self.number
-        return Px4Ports(14580 + n, 14540 + n, 18570 + n)
-
-    def release(self) -> None:
-        if self._lock is not None:
-            self._lock.close()
-            self._lock = None
+def _instance_free(n: int) -> str | None:
+    """Why PX4 instance ``n`` cannot run now (its ports taken, a PX4 of it running), or None."""
+    taken = [
+        port
+        for local, remote in _PORT_BASES
+        for port in (local + n, *(() if remote is None else (remote + n,)))
+        if not port_free(port)
+    ]
+    if taken:
+        return f"ports {taken} in use"
+    # A PX4 daemon of instance n answers on its command socket.
+    path = f"/tmp/px4-sock-{n}"
+    if os.path.exists(path):
+        with (
+            socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock,
+            contextlib.suppress(OSError),
+        ):
+            sock.connect(path)
+            return "a PX4 runs"
+    return None
 
 
-class Px4:
+def px4_ports(n: int) -> Px4Ports:
+    return Px4Ports(14580 + n, 14540 + n, 18570 + n)
+
+
+class Px4(SitlAutopilot):
     """One PX4 SITL instance (SIH quad), in a working directory of its own."""
 
     def __init__(self, root: Path, instance: int, workdir: Path) -> None:
@@ -475,7 +177,8 @@ class Px4:
         self.instance = instance
         self.workdir = workdir
         self.system_id = instance + 1  # its start-up sets MAV_SYS_ID to the instance + 1
-        self.process: LoggedProcess | None = None
+        self.ports = px4_ports(instance)
+        self.process: Process | None = None
         self.starts = 0
         self._links: list[tuple[int, int]] = []
 
@@ -484,7 +187,7 @@ class Px4:
         assert self.process is None or not self.process.alive(), "PX4 already running"
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.starts += 1
-        self.process = LoggedProcess(
+        self.process = Process(
             [
                 str(self.root / "bin" / "px4"),
                 "-d",
@@ -553,30 +256,13 @@ class Px4:
         for index in range(len(self._links)):
             self._start_link(index)
 
-    def pause(self) -> None:
-        assert self.process is not None
-        os.kill(self.process.pid, signal.SIGSTOP)
-
-    def resume(self) -> None:
-        assert self.process is not None
-        os.kill(self.process.pid, signal.SIGCONT)
-
-    def kill(self) -> None:
-        assert self.process is not None
-        self.process.stop(signal.SIGKILL, timeout_s=5)
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.stop(signal.SIGTERM, timeout_s=5)
-
 
 @contextlib.contextmanager
-def px4_instance(root: Path, workdir: Path) -> Iterator[tuple[Px4, InstanceClaim]]:
+def px4_instance(root: Path, workdir: Path) -> Iterator[Px4]:
     """A claimed instance number and a PX4 on it (not started); stopped and released after."""
-    claim = InstanceClaim()
-    px4 = Px4(root, claim.number, workdir / f"px4-{claim.number}")
-    try:
-        yield px4, claim
-    finally:
-        px4.stop()
-        claim.release()
+    with claimed_instance("px4", range(MAX_INSTANCES), _instance_free) as n:
+        px4 = Px4(root, n, workdir / f"px4-{n}")
+        try:
+            yield px4
+        finally:
+            px4.stop()

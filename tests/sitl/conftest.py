@@ -5,19 +5,26 @@ tests at a build of their own with an environment variable, and without a build 
 and say why. Everything runs on loopback: the autopilot's MAVLink on TCP, CAN between processes
 on python-can's udp_multicast interface with hop limit 0.
 
-The pieces: the autopilot in a working directory of its own with an instance number whose
-ports are free (``-I N``), the bridge through its CLI (``esc-bridge run``), the simulated ESCs
-(``esc-bridge sim``), a recording tap on the bridge's autopilot link (``mavtap.py``, a process
-of its own), and a ground station on another autopilot port. Every process started here is
-stopped in a ``finally`` (the fixtures use context managers), also when a test fails.
+The pieces both test files use (test_arducopter.py, and test_px4.py with its PX4 harness in
+_px4.py): a logged :class:`Process` in a session of its own, :func:`wait_until` with a
+deadline, instance numbers held by lock files (:func:`claimed_instance`), the autopilot's
+process signals (:class:`SitlAutopilot`), the bridge through its CLI (:func:`start_bridge`,
+:func:`write_bridge_config`), the simulated ESCs (:func:`start_sim`), observers with a 4 MiB
+receive buffer whose kernel drops are counted (:func:`wide_observer`, :func:`udp_drops`), the
+command decoder (:func:`motor_commands`), one :class:`GroundStation` (TCP for ArduPilot, UDP for
+PX4) and :func:`measured`. The taps differ because the links do: ArduPilot's TCP tap
+(``mavtap.py``) and PX4's UDP relay (``_px4.UdpTap``). Every process started here is stopped in
+a ``finally`` (the fixtures use context managers), also when a test fails.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -25,18 +32,22 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import can
 import pytest
-from conftest import ESC_BRIDGE, MULTICAST_GROUP, ROOT, free_port
+from conftest import ESC_BRIDGE, ROOT, Observer, can_args, free_port
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil
+from bridge.escs import ckesc, ft
+from bridge.mavlink import load_dialect
 
-mavlink: Any = mavutil.mavlink
+# The project's dialect (ArduPilot's messages plus ESC_INFO/ESC_STATUS), MAVLink 2: tests/conftest
+# sets MAVLINK20 before pymavlink is first imported.
+dialect: Any = load_dialect()
+mavlink: Any = dialect
 
 ARDUCOPTER_ENV = "ESC_BRIDGE_ARDUCOPTER"
 """Path of an ``arducopter`` SITL binary (``./waf copter`` for board ``sitl``)."""
@@ -55,11 +66,19 @@ ARDUPILOT_UDP_PORTS = (5501,)
 # Measurements: the tests record numbers here and the session prints them at its end, for the
 # README's table (``pytest tests/sitl -s`` or the summary at the end of any run).
 
-MEASUREMENTS: dict[str, str] = {}
+MEASUREMENTS: dict[str, Any] = {}
+REPORT_ENV = "ESC_BRIDGE_SITL_REPORT"
+"""A file to append every measurement to, one JSON object a line (bench/sitl_table.py reads it):
+under pytest-xdist the measurements are made in the workers, whose values the controller's
+summary never sees."""
 
 
-def measured(name: str, value: str) -> None:
+def measured(name: str, value: Any) -> None:
     MEASUREMENTS[name] = value
+    target = os.environ.get(REPORT_ENV)
+    if target:
+        with open(target, "a") as f:
+            f.write(json.dumps({"name": name, "value": value}) + "\n")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -121,44 +140,63 @@ def arducopter_build() -> ArduCopterBuild:
 # Ports
 
 
-def _port_free(port: int, kind: int) -> bool:
+def port_free(port: int, kind: int = socket.SOCK_DGRAM, host: str = "0.0.0.0") -> bool:
+    """Nobody has ``port`` bound on this machine (any address: PX4 binds them all)."""
     with socket.socket(socket.AF_INET, kind) as sock:
         try:
-            sock.bind(("127.0.0.1", port))
+            sock.bind((host, port))
         except OSError:
             return False
     return True
 
 
 @contextlib.contextmanager
-def reserved_instance(
-    tcp_ports: tuple[int, ...], udp_ports: tuple[int, ...] = (), step: int = 10
+def claimed_instance(
+    kind: str, candidates: Sequence[int], free: Callable[[int], str | None]
 ) -> Iterator[int]:
-    """An instance number N (1..99) whose ports (each base + step·N) are free now, held
-    against other test processes by a lock file until the block ends. The lock matters because
-    a free port is only claimed when the autopilot binds it, a second or so later."""
+    """An autopilot instance number from ``candidates`` that ``free`` finds usable (it returns
+    None, or why not), held against every other test process on this machine by a lock file
+    (``esc-bridge-<kind>-instance-<n>.lock``) until the block ends. The lock matters because a
+    free port is only claimed when the autopilot binds it, a second or so later."""
     lock_dir = Path(tempfile.gettempdir())
-    candidates = list(range(1, 100))
-    random.shuffle(candidates)
+    busy: list[str] = []
     for n in candidates:
-        handle: IO[bytes] = open(lock_dir / f"esc-bridge-sitl-instance-{n}.lock", "wb")  # noqa: SIM115
+        handle: IO[bytes] = open(lock_dir / f"esc-bridge-{kind}-instance-{n}.lock", "ab")  # noqa: SIM115
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             handle.close()
+            busy.append(f"{n}: locked by another test")
             continue
-        free = all(_port_free(p + step * n, socket.SOCK_STREAM) for p in tcp_ports) and all(
-            _port_free(p + step * n, socket.SOCK_DGRAM) for p in udp_ports
-        )
-        if not free:
+        why = free(n)
+        if why is not None:
             handle.close()
+            busy.append(f"{n}: {why}")
             continue
         try:
             yield n
         finally:
             handle.close()
         return
-    raise AssertionError("no SITL instance number 1..99 with free ports")
+    raise AssertionError(f"no free {kind} SITL instance: {'; '.join(busy[-10:])}")
+
+
+@contextlib.contextmanager
+def reserved_instance(
+    tcp_ports: tuple[int, ...], udp_ports: tuple[int, ...] = (), step: int = 10
+) -> Iterator[int]:
+    """An ArduPilot instance number N (1..99, shuffled) whose ports (each base + step·N) are
+    free now."""
+
+    def free(n: int) -> str | None:
+        taken = [p + step * n for p in tcp_ports if not port_free(p + step * n, socket.SOCK_STREAM)]
+        taken += [p + step * n for p in udp_ports if not port_free(p + step * n)]
+        return f"ports {taken} in use" if taken else None
+
+    candidates = list(range(1, 100))
+    random.shuffle(candidates)
+    with claimed_instance("ardupilot", candidates, free) as n:
+        yield n
 
 
 def widen_receive_buffer(bus: Any, size: int = 4 << 20) -> None:
@@ -168,6 +206,14 @@ def widen_receive_buffer(bus: Any, size: int = 4 << 20) -> None:
     socket, so closing it leaves the bus's own open.)"""
     with socket.fromfd(bus.fileno(), socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+
+
+def wide_observer(can_port: int) -> Observer:
+    """An observer of the bus at ``can_port`` whose socket queues 4 MiB (see
+    :func:`widen_receive_buffer`); ask :func:`udp_drops` afterwards whether it lost any."""
+    observer = Observer(can_port)
+    widen_receive_buffer(observer.bus)
+    return observer
 
 
 def udp_drops(bus: Any) -> int:
@@ -188,22 +234,37 @@ def udp_drops(bus: Any) -> int:
 
 
 class Process:
-    """A subprocess in a session of its own, its output in a log file; always ended."""
+    """A subprocess in a session of its own, its output in a log file (never a pipe: a full
+    pipe would block a daemon that logs more than a pipe holds in a long flight); always
+    ended by :meth:`stop`."""
 
-    def __init__(self, args: list[str], log: Path, cwd: Path | None = None) -> None:
-        self.args = args
+    def __init__(
+        self,
+        args: Sequence[str],
+        log: Path,
+        cwd: Path | None = None,
+        env: dict[str, str] | None = None,
+    ) -> None:
+        self.args = list(args)
         self.log_path = log
-        self._log = open(log, "ab")  # noqa: SIM115 - closed in stop()
+        self._log: IO[bytes] = open(log, "ab")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(
-            args,
+            self.args,
             cwd=cwd,
             stdout=self._log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
             start_new_session=True,
         )
         self.started = time.monotonic()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
 
     def send_signal(self, sig: int) -> None:
         if self.proc.poll() is None:
@@ -225,15 +286,59 @@ class Process:
         self._log.close()
         return self.proc.returncode
 
-    def tail(self, lines: int = 30) -> str:
+    def output(self) -> str:
         try:
-            text = self.log_path.read_text(errors="replace")
+            return self.log_path.read_text(errors="replace")
         except OSError:
             return ""
-        return "\n".join(text.splitlines()[-lines:])
+
+    def tail(self, lines: int = 30) -> str:
+        return "\n".join(self.output().splitlines()[-lines:])
 
 
-class ArduCopter:
+def wait_until(
+    condition: Callable[[], bool], timeout_s: float, what: str, poll_s: float = 0.02
+) -> float:
+    """Poll ``condition`` until it holds; its monotonic time. Fails naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if condition():
+            return time.monotonic()
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not within {timeout_s} s")
+        time.sleep(poll_s)
+
+
+class SitlAutopilot:
+    """What a test does to an autopilot's SITL process, whichever autopilot it is."""
+
+    process: Process | None = None
+
+    @property
+    def pid(self) -> int:
+        assert self.process is not None
+        return self.process.pid
+
+    def pause(self) -> None:
+        """SIGSTOP: the autopilot falls silent, its simulated clock standing still."""
+        assert self.process is not None
+        os.kill(self.process.pid, signal.SIGSTOP)
+
+    def resume(self) -> None:
+        assert self.process is not None
+        os.kill(self.process.pid, signal.SIGCONT)
+
+    def kill(self) -> None:
+        """SIGKILL: the links drop at once, as when the flight controller dies."""
+        assert self.process is not None
+        self.process.stop(signal.SIGKILL, timeout_s=5)
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.stop(signal.SIGTERM, timeout_s=5)
+
+
+class ArduCopter(SitlAutopilot):
     """An ArduCopter SITL quad at real time (speedup 1) in ``workdir``, instance ``instance``.
 
     Its defaults file is the build's ``copter.parm`` plus ``params`` (written to the working
@@ -301,80 +406,59 @@ class ArduCopter:
             return False
         return True
 
-    @property
-    def pid(self) -> int:
-        assert self.process is not None
-        return self.process.proc.pid
 
-    def kill(self) -> None:
-        """SIGKILL: the links drop at once, as when the flight controller dies."""
-        assert self.process is not None
-        self.process.stop(signal.SIGKILL, timeout_s=5)
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.stop(signal.SIGTERM, timeout_s=5)
+def write_bridge_config(
+    path: Path,
+    *,
+    component_id: int,
+    protocol: str,
+    source: str | None = None,
+    autopilot_system_id: int | None = None,
+    stream_rate_hz: float = 200.0,
+    input_timeout_ms: int = 100,
+) -> Path:
+    """A bridge configuration for the keys the CLI has no flag for (the autopilot's system id,
+    the bridge's component id, the stream rate); the rest keeps the defaults."""
+    mavlink_keys = [f"component_id = {component_id}", f"stream_rate_hz = {stream_rate_hz:g}"]
+    if source is not None:
+        mavlink_keys.append(f'source = "{source}"')
+    if autopilot_system_id is not None:
+        mavlink_keys.append(f"autopilot_system_id = {autopilot_system_id}")
+    path.write_text(
+        "[mavlink]\n"
+        + "".join(f"{line}\n" for line in mavlink_keys)
+        + f'[output]\nprotocol = "{protocol}"\ninput_timeout_ms = {input_timeout_ms}\n'
+        + '[mixer]\nname = "passthrough-4"\n[escs]\nids = [1, 2, 3, 4]\n'
+    )
+    return path
 
 
 def start_bridge(
-    workdir: Path,
-    name: str,
-    protocol: str,
-    mavlink_port: int,
-    can_port: int,
-    config: str,
+    config: Path, mavlink_url: str, can_port: int, log_path: Path, *extra: str
 ) -> Process:
-    """``esc-bridge run`` on its own udp_multicast bus (port ``can_port``) with the autopilot
-    link ``tcp:127.0.0.1:<mavlink_port>``; ``config`` is extra TOML (e.g. its component id)."""
-    path = workdir / f"{name}.toml"
-    path.write_text(config)
+    """``esc-bridge run`` through its CLI on its own udp_multicast bus (port ``can_port``)."""
     return Process(
         [
             ESC_BRIDGE,
             "run",
             "--config",
-            str(path),
+            str(config),
             "--mavlink",
-            f"tcp:127.0.0.1:{mavlink_port}",
-            "--protocol",
-            protocol,
-            "--can-interface",
-            "udp_multicast",
-            "--can-channel",
-            MULTICAST_GROUP,
-            "--can-option",
-            f"port={can_port}",
-            "--can-option",
-            "hop_limit=0",
-            "--vehicle",
-            name,
+            mavlink_url,
+            *can_args(can_port),
             # No Zenoh peer discovery: parallel test runs must never see each other.
             "--no-zenoh-scouting",
+            *extra,
         ],
-        workdir / f"bridge-{name}.log",
+        log_path,
     )
 
 
-def start_sim(workdir: Path, name: str, protocol: str, can_port: int, escs: int = 4) -> Process:
-    """``esc-bridge sim``: ``escs`` simulated ESCs (IDs 1..N) on the bus at ``can_port``."""
+def start_sim(can_port: int, log_path: Path, protocol: str, *extra: str) -> Process:
+    """``esc-bridge sim``: four simulated ESCs, IDs (and CKESC throttle channels) 1..4."""
     return Process(
-        [
-            ESC_BRIDGE,
-            "sim",
-            "--protocol",
-            protocol,
-            "--escs",
-            str(escs),
-            "--can-interface",
-            "udp_multicast",
-            "--can-channel",
-            MULTICAST_GROUP,
-            "--can-option",
-            f"port={can_port}",
-            "--can-option",
-            "hop_limit=0",
-        ],
-        workdir / f"sim-{name}.log",
+        [ESC_BRIDGE, "sim", "--protocol", protocol, "--escs", "4", *can_args(can_port), *extra],
+        log_path,
     )
 
 
@@ -446,12 +530,22 @@ class MavTap:
 
 
 class GroundStation:
-    """A pymavlink ground station (system 255) on one of the autopilot's TCP ports, reading in
-    a thread of its own. Every message is kept with its monotonic receive time."""
+    """A pymavlink ground station on an autopilot's GCS port, reading in a thread of its own:
+    ``tcp:HOST:PORT`` (ArduPilot SITL's SERIAL ports; it connects, retrying until SITL
+    listens) or ``udpout:HOST:PORT`` (PX4's GCS port; PX4 answers the sender). It sends a
+    HEARTBEAT a second (PX4 talks only to a station that spoke first) and keeps every message
+    it gets, decoded with the project's dialect (ESC_INFO, ESC_STATUS, ArduPilot's messages),
+    with its monotonic receive time."""
 
-    def __init__(self, port: int, connect_timeout_s: float = 20.0) -> None:
-        self.port = port
-        self._mav: Any = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    def __init__(
+        self, url: str, system: int = 255, component: int = 190, connect_timeout_s: float = 20.0
+    ) -> None:
+        scheme, host, port = url.split(":")
+        assert scheme in ("tcp", "udpout"), f"unsupported ground station link {url}"
+        self.url = url
+        self._address = (host, int(port))
+        self.mav: Any = dialect.MAVLink(None, srcSystem=system, srcComponent=component)
+        """The project dialect's encoder with this station's ids."""
         self._lock = threading.Lock()
         self.messages: list[tuple[float, Any]] = []
         self._sock: socket.socket | None = None
@@ -460,25 +554,29 @@ class GroundStation:
         self.connect(connect_timeout_s)
 
     def connect(self, timeout_s: float) -> None:
-        """Connect (again): SITL listens on SERIAL0 from its first moments."""
+        """Connect (again: a restarted SITL drops its TCP links)."""
         self.disconnect()
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                sock = socket.create_connection(("127.0.0.1", self.port), timeout=1.0)
-                break
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    raise AssertionError(
-                        f"the autopilot's TCP port {self.port} did not accept a connection "
-                        f"within {timeout_s} s ({exc})"
-                    ) from exc
-                time.sleep(0.1)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if self.url.startswith("udpout:"):
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.connect(self._address)
+        else:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                try:
+                    sock = socket.create_connection(self._address, timeout=1.0)
+                    break
+                except OSError as exc:
+                    if time.monotonic() > deadline:
+                        raise AssertionError(
+                            f"the autopilot's TCP port {self._address[1]} did not accept a "
+                            f"connection within {timeout_s} s ({exc})"
+                        ) from exc
+                    time.sleep(0.1)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.settimeout(0.1)
         self._sock = sock
         self._stop = threading.Event()
-        parser: Any = mavlink.MAVLink(None)
+        parser: Any = dialect.MAVLink(None)
         parser.robust_parsing = True
         self._thread = threading.Thread(
             target=self._run, args=(sock, parser, self._stop), name="gcs", daemon=True
@@ -486,19 +584,31 @@ class GroundStation:
         self._thread.start()
 
     def _run(self, sock: socket.socket, parser: Any, stop: threading.Event) -> None:
+        next_beat = 0.0
         while not stop.is_set():
+            now = time.monotonic()
+            if now >= next_beat:
+                beat = self.mav.heartbeat_encode(
+                    dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 4
+                )
+                with contextlib.suppress(OSError):
+                    sock.send(beat.pack(self.mav))
+                next_beat = now + 1.0
             try:
                 data = sock.recv(65536)
             except TimeoutError:
                 continue
             except OSError:
+                if self.url.startswith("udpout:"):  # nobody listening yet: ICMP refused
+                    time.sleep(0.05)
+                    continue
                 return
             if not data:
                 return
-            now = time.monotonic()
-            msgs = parser.parse_buffer(data) or []
+            stamp = time.monotonic()
+            batch = [m for m in parser.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
             with self._lock:
-                self.messages.extend((now, m) for m in msgs)
+                self.messages.extend((stamp, m) for m in batch)
 
     def disconnect(self) -> None:
         self._stop.set()
@@ -508,15 +618,18 @@ class GroundStation:
             self._sock.close()
         self._sock = None
 
+    def close(self) -> None:
+        self.disconnect()
+
     def send(self, msg: Any) -> None:
         assert self._sock is not None
-        self._sock.sendall(msg.pack(self._mav))
+        self._sock.send(msg.pack(self.mav))
 
-    def command(self, command: int, *params: float, component: int = 1) -> float:
-        """Send COMMAND_LONG to the autopilot; returns when it was sent."""
+    def send_command(self, command: int, *params: float, target: tuple[int, int] = (1, 1)) -> float:
+        """Send COMMAND_LONG to ``target`` once; returns when it was sent."""
         values = [*params, *([0.0] * (7 - len(params)))]
         sent = time.monotonic()
-        self.send(self._mav.command_long_encode(1, component, command, 0, *values))
+        self.send(self.mav.command_long_encode(*target, command, 0, *values))
         return sent
 
     def ack(self, command: int, after: float, timeout_s: float = 5.0) -> int:
@@ -526,12 +639,53 @@ class GroundStation:
         )
         return int(msg.result)
 
-    def since(self, after: float, kind: str | None = None) -> list[tuple[float, Any]]:
+    def command(
+        self,
+        target: tuple[int, int],
+        command: int,
+        params: Sequence[float],
+        timeout_s: float,
+        what: str,
+        retry_s: float = 1.0,
+    ) -> float:
+        """Send COMMAND_LONG until it is ACCEPTED (refusals are retried: pre-arm checks pass
+        a little after start-up); the monotonic time of the ACK. Fails naming ``what`` with
+        the last results."""
+        deadline = time.monotonic() + timeout_s
+        results: list[int] = []
+        while time.monotonic() < deadline:
+            sent = self.send_command(command, *params, target=target)
+            answer_by = min(deadline, sent + retry_s)
+            while time.monotonic() < answer_by:
+                acks = [
+                    (t, m) for t, m in self.received("COMMAND_ACK", sent) if m.command == command
+                ]
+                if acks:
+                    t, ack = acks[0]
+                    if ack.result == dialect.MAV_RESULT_ACCEPTED:
+                        return t
+                    results.append(int(ack.result))
+                    break
+                time.sleep(0.02)
+            time.sleep(max(0.0, answer_by - time.monotonic()))
+        texts = [m.text for _, m in self.received("STATUSTEXT")][-5:]
+        raise AssertionError(
+            f"{what}: COMMAND_LONG {command} not accepted within {timeout_s} s "
+            f"(results {results[-5:]}, last STATUSTEXTs {texts})"
+        )
+
+    def received(
+        self, kind: str | None = None, after: float = 0.0, sender: tuple[int, int] | None = None
+    ) -> list[tuple[float, Any]]:
+        """(receive time, message) of ``kind`` (any: None) from ``after`` on, from ``sender``
+        (system, component) or anyone."""
         with self._lock:
             return [
                 (t, m)
                 for t, m in self.messages
-                if t >= after and (kind is None or m.get_type() == kind)
+                if t >= after
+                and (kind is None or m.get_type() == kind)
+                and (sender is None or (m.get_srcSystem(), m.get_srcComponent()) == sender)
             ]
 
     def wait_for(
@@ -543,21 +697,52 @@ class GroundStation:
         first: bool = False,
         what: str = "",
     ) -> Any:
+        """The last (``first``: the first) ``kind`` message after ``after`` that satisfies
+        ``predicate``, waiting up to ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         while True:
-            found = [m for _, m in self.since(after, kind) if predicate(m)]
+            found = [m for _, m in self.received(kind, after) if predicate(m)]
             if found:
                 return found[0] if first else found[-1]
             if time.monotonic() > deadline:
-                texts = [m.text for _, m in self.since(after, "STATUSTEXT")][-8:]
+                texts = [m.text for _, m in self.received("STATUSTEXT", after)][-8:]
                 raise AssertionError(
                     f"no {what or kind} at the ground station within {timeout_s} s; "
                     f"the autopilot said: {texts}"
                 )
             time.sleep(0.02)
 
-    def close(self) -> None:
-        self.disconnect()
+
+def motor_commands(protocol: str, msg: can.Message) -> dict[int, float] | None:
+    """The motor commands one command frame carries, by motor (0-based: CKESC RawCommand_12b
+    group g carries motors 4(g-1)..4g-1 as throttles; an FT SetCurrent carries its ESC's motor
+    as a current in A); None for any other frame. A frame that does not decode raises
+    CodecError (the callers count those)."""
+    if protocol == "ckesc":
+        frame: Any = ckesc.decode(msg)
+        if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+            return None
+        first = 4 * (frame.message.group - 1)
+        return {first + i: float(v) for i, v in enumerate(frame.message.throttles)}
+    frame = ft.decode(msg)
+    if frame is None or not isinstance(frame.message, ft.SetCurrent):
+        return None
+    return {frame.esc_id - 1: frame.message.current_a}
+
+
+def stream_answers(bridge_log: str, message: str) -> str:
+    """What the autopilot answered the bridge's stream requests for ``message``, as the bridge
+    logged each COMMAND_ACK ("ACCEPTED 200 Hz", "FAILED 20 Hz"), in order, repeats folded;
+    "no answer logged" when there was none."""
+    pattern = re.compile(
+        rf"autopilot \d+/\d+:? (?:([A-Z_]+) )?{message} at ([\d.]+) Hz(?:: MAV_RESULT_([A-Z_]+))?"
+    )
+    answers: list[str] = []
+    for match in pattern.finditer(bridge_log):
+        answer = f"{match[1] or match[3]} {match[2]} Hz"
+        if (match[1] or match[3]) and (not answers or answers[-1] != answer):
+            answers.append(answer)
+    return ", ".join(answers) or "no answer logged"
 
 
 def armed(heartbeat: Any) -> bool:

@@ -13,9 +13,10 @@ record:
 2. while the restarted one boots: HEARTBEAT and SERVO_OUTPUT_RAW rates asked on the ground
    station's link (what ArduCopter grants), and two more motor tests (A, then C);
 3. arm, GUIDED, take off, hover; a 1 s SIGSTOP of the autopilot mid-hover, hover; LAND, which
-   disarms. The stall comes last because the bridge stays stale long after it (STALL_XFAIL).
+   disarms.
 
-``pytest tests/sitl`` (or ``-m sitl``) runs it; the numbers each test measured are printed in
+``pytest tests/sitl`` (or ``-m sitl``) runs it; the numbers each test measured go to the file
+``$ESC_BRIDGE_SITL_REPORT`` names (bench/sitl_table.py) and, without xdist (``-p no:xdist``), to
 a "SITL measurements" section at the end of the run. ESC_BRIDGE_ARDUCOPTER names another
 build (see conftest.py).
 
@@ -29,7 +30,6 @@ import bisect
 import contextlib
 import itertools
 import os
-import signal
 import statistics
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -58,25 +58,36 @@ from .conftest import (
     from_autopilot,
     mavlink,
     measured,
+    motor_commands,
     reserved_instance,
     start_bridge,
     start_sim,
+    stream_answers,
     udp_drops,
-    widen_receive_buffer,
+    wait_until,
+    wide_observer,
+    write_bridge_config,
 )
 
 PERIOD_S = 1 / 400  # both bridges tick at 400 Hz (CKESC 400 Hz; FT 4 ESCs x 100 Hz)
 INPUT_TIMEOUT_S = 0.100  # [output] input_timeout_ms default
 STREAM_HZ = 200  # [mavlink] stream_rate_hz default
 FT_FULL_SCALE_A = 20.0
+# The observer's and the tap's stamps, taken in two processes, may be this far apart (as in
+# test_px4.py's lag rule): a frame stamped just before the tap's stamp of the output it carries.
+CLOCK_SKEW_S = 0.001
 # A frame is judged against the motor output only while that output is fresh: newer than half
 # the input timeout at the tap. Older ones (the stall, the kill) are the failsafe tests' part.
 FRESH_S = INPUT_TIMEOUT_S / 2
 CKESC_LINK, FT_LINK = 0, 1
 TEST_THROTTLE_PERCENT = 20.0
+HEARTBEAT_HZ = 20  # [mavlink] autopilot_heartbeat_hz default; ArduCopter grants it
+# A FT ESC's frame comes every 10 ms, the HEARTBEAT's forwarding and the tap on a loaded
+# 2-core machine a few ms more.
+MOTOR_TEST_SLACK_S = 0.025
 TEST_PWM = 1200  # ArduCopter: percent of MOT_PWM_MIN..MAX (1000..2000)
 # Hover after the stall before landing; ESC_BRIDGE_SITL_RECOVERY_S longer measures how long the
-# bridge takes to trust the autopilot's inputs again (see STALL_XFAIL).
+# bridge takes to trust the autopilot's inputs again.
 RECOVERY_WAIT_S = float(os.environ.get("ESC_BRIDGE_SITL_RECOVERY_S", "3"))
 
 pytestmark = pytest.mark.sitl
@@ -104,42 +115,26 @@ class Command:
     value: float
 
 
-def ckesc_commands(
-    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
+def decode_commands(
+    protocol: str, frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
 ) -> list[list[Command]]:
-    """Per CKESC RawCommand_12b frame, the four motors' commands (a quad: group 1 only).
-    Frames that do not decode go to ``malformed``."""
+    """Per command frame (CKESC: all four motors; FT: one ESC), its commands. Frames that do
+    not decode, and CKESC groups past the quad's first, go to ``malformed``."""
     out = []
     for t, msg in frames:
         try:
-            frame = ckesc.decode(msg)
+            commands = motor_commands(protocol, msg)
         except CodecError as exc:
             if malformed is not None:
                 malformed.append(f"{msg}: {exc}")
             continue
-        if frame is not None and isinstance(frame.message, ckesc.RawCommand12b):
-            group = frame.message.group
-            if group != 1 and malformed is not None:
-                malformed.append(f"{msg}: RawCommand_12b group {group} on a quad")
-            out.append([Command(t, i, float(v)) for i, v in enumerate(frame.message.throttles)])
-    return out
-
-
-def ft_commands(
-    frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
-) -> list[list[Command]]:
-    """Per FT SetCurrent frame (one ESC each), its command. Frames that do not decode go to
-    ``malformed``."""
-    out = []
-    for t, msg in frames:
-        try:
-            frame = ft.decode(msg)
-        except CodecError as exc:
-            if malformed is not None:
-                malformed.append(f"{msg}: {exc}")
+        if commands is None:
             continue
-        if frame is not None and isinstance(frame.message, ft.SetCurrent):
-            out.append([Command(t, frame.esc_id - 1, frame.message.current_a)])
+        if max(commands) > 3:
+            if malformed is not None:
+                malformed.append(f"{msg}: commands for motors {sorted(commands)} on a quad")
+            continue
+        out.append([Command(t, motor, value) for motor, value in commands.items()])
     return out
 
 
@@ -167,8 +162,7 @@ class Rig:
         with self.observer._lock:
             frames = list(self.observer.frames)
         frames.sort(key=lambda f: f[0])
-        decode = ckesc_commands if self.protocol == "ckesc" else ft_commands
-        self.commands = decode(frames, self.malformed)
+        self.commands = decode_commands(self.protocol, frames, self.malformed)
 
     def telemetry_frames(self) -> list[tuple[float, can.Message]]:
         with self.observer._lock:
@@ -193,7 +187,9 @@ class Rig:
         taken when its tick fired; one that arrived since may not have been taken yet. The
         stamps themselves can be a few ms late on a loaded machine (the kernel may deliver
         loopback packets from ksoftirqd), hence the message of lag beside the tick."""
-        i = self.newest_index(t)
+        # CLOCK_SKEW_S: the observer's stamp (the kernel's wall clock, moved onto the monotonic
+        # one) and the tap's (monotonic) can disagree by that much.
+        i = self.newest_index(t + CLOCK_SKEW_S)
         j = bisect.bisect_right(self._servo_sent, t - PERIOD_S) - 1
         j = max(min(j, i - 1), 0)
         servo = self.tap.servo
@@ -229,15 +225,6 @@ class Flight:
 # Flying it
 
 
-def wait_until(condition: Callable[[], bool], timeout_s: float, what: str) -> float:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout_s} s")
-        time.sleep(0.02)
-    return time.monotonic()
-
-
 def streaming(tap: MavTap, link: int, since: float, min_messages: int = 50) -> bool:
     rec = tap.records().get(link)
     return rec is not None and sum(1 for s in rec.servo if s.t >= since) >= min_messages
@@ -247,13 +234,12 @@ def bridge_spinning(rig: Rig, since: float) -> bool:
     """A command frame with some motor non-zero since ``since``."""
     with rig.observer._lock:
         frames = [(t, m) for t, m in rig.observer.frames if t >= since]
-    decode = ckesc_commands if rig.protocol == "ckesc" else ft_commands
-    return any(c.value > 0 for frame in decode(frames) for c in frame)
+    return any(c.value > 0 for frame in decode_commands(rig.protocol, frames) for c in frame)
 
 
 def message_interval(gcs: GroundStation, msg_id: int, hz: float) -> tuple[int, float]:
     """Ask for ``msg_id`` at ``hz`` on the ground station's link: (ACK result, sent time)."""
-    sent = gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+    sent = gcs.send_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
     return gcs.ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, sent), sent
 
 
@@ -264,7 +250,9 @@ def measure_heartbeat_rates(flight: Flight) -> None:
         result, sent = message_interval(gcs, 0, hz)
         time.sleep(1.2)
         beats = [
-            t for t, m in gcs.since(sent + 0.2, "HEARTBEAT") if from_autopilot(m) and t < sent + 1.2
+            t
+            for t, m in gcs.received("HEARTBEAT", sent + 0.2)
+            if from_autopilot(m) and t < sent + 1.2
         ]
         flight.heartbeat_rates[hz] = (result, len(beats) / 1.0)
     # The rate the motor-test measurement below uses on this link.
@@ -272,17 +260,17 @@ def measure_heartbeat_rates(flight: Flight) -> None:
     result, sent = message_interval(gcs, 36, 400)
     time.sleep(0.3)
     # ArduPilot splits a long STATUSTEXT into chunks sharing a non-zero id.
-    chunks = [m for _, m in gcs.since(sent, "STATUSTEXT") if m.id]
+    chunks = [m for _, m in gcs.received("STATUSTEXT", sent) if m.id]
     texts = "".join(m.text for m in chunks if m.id == chunks[0].id) if chunks else ""
     message_interval(gcs, 36, STREAM_HZ)
     time.sleep(1.0)
-    got = [m for _, m in gcs.since(time.monotonic() - 0.8, "SERVO_OUTPUT_RAW")]
+    got = [m for _, m in gcs.received("SERVO_OUTPUT_RAW", time.monotonic() - 0.8)]
     flight.servo_400 = (result, texts, len(got) / 0.8)
 
 
 def motor_test(flight: Flight, label: str, motor: int, seconds: float) -> MotorTest:
     """ArduCopter's own motor test, sent by the ground station to the autopilot."""
-    sent = flight.gcs.command(
+    sent = flight.gcs.send_command(
         mavlink.MAV_CMD_DO_MOTOR_TEST,
         motor,
         mavlink.MOTOR_TEST_THROTTLE_PERCENT,
@@ -314,18 +302,18 @@ def arm_and_take_off(flight: Flight, altitude_m: float) -> None:
     deadline = flight.events["restart"] + 120 if "restart" in flight.events else 0
     deadline = max(deadline, time.monotonic() + 120)
     while True:  # pre-arm checks refuse until the EKF is happy (~40 s after start)
-        sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # custom mode 4: GUIDED
+        sent = gcs.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # custom mode 4: GUIDED
         gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent)
-        sent = gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        sent = gcs.send_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         flight.arm_attempts += 1
         if gcs.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, sent) == mavlink.MAV_RESULT_ACCEPTED:
             break
         if time.monotonic() > deadline:
-            texts = [m.text for _, m in gcs.since(sent, "STATUSTEXT")]
+            texts = [m.text for _, m in gcs.received("STATUSTEXT", sent)]
             raise AssertionError(f"ArduCopter refused to arm for 120 s: {texts}")
         time.sleep(1.0)
     flight.events["armed"] = time.monotonic()
-    sent = gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+    sent = gcs.send_command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
     result = gcs.ack(mavlink.MAV_CMD_NAV_TAKEOFF, sent)
     assert result == mavlink.MAV_RESULT_ACCEPTED, f"takeoff refused: {result}"
     gcs.wait_for(
@@ -389,17 +377,16 @@ def fly(flight: Flight, tap: MavTap) -> None:
     test.end = wait_disarmed_at_gcs(flight, test.sent + 0.5, 5, "disarmed after motor test C")
     message_interval(gcs, 33, 10)  # GLOBAL_POSITION_INT, for the altitude
 
-    # 3. The flight, on the restarted autopilot. The stall comes last: after it the bridge
-    # judges the inputs stale for a long time (see STALL_XFAIL).
+    # 3. The flight, on the restarted autopilot, the stall in its hover.
     arm_and_take_off(flight, 3.0)
     time.sleep(2.0)
     flight.events["stall"] = time.monotonic()
-    ap.process.send_signal(signal.SIGSTOP)  # type: ignore[union-attr]
+    ap.pause()
     time.sleep(1.0)
-    ap.process.send_signal(signal.SIGCONT)  # type: ignore[union-attr]
+    ap.resume()
     flight.events["resume"] = time.monotonic()
     time.sleep(RECOVERY_WAIT_S)
-    sent = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
+    sent = gcs.send_command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9)  # LAND
     assert gcs.ack(mavlink.MAV_CMD_DO_SET_MODE, sent) == mavlink.MAV_RESULT_ACCEPTED
     flight.events["land"] = sent
     flight.events["disarmed"] = wait_disarmed_at_gcs(flight, sent, 40, "disarmed after LAND")
@@ -424,18 +411,24 @@ def flight(
             ("ft", "ft", FT_LINK, 192, ft_current, 1e-4),
         ):
             can_port = free_port()
-            observer = Observer(can_port)
+            observer = wide_observer(can_port)
             stack.callback(observer.close)
-            widen_receive_buffer(observer.bus)
-            sim = start_sim(workdir, name, protocol, can_port)
+            sim = start_sim(can_port, workdir / f"sim-{name}.log", protocol)
             stack.callback(sim.stop)
+            config = write_bridge_config(
+                workdir / f"{name}.toml",
+                component_id=component,
+                protocol=protocol,
+                stream_rate_hz=STREAM_HZ,
+                input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
+            )
             bridge = start_bridge(
-                workdir,
-                name,
-                protocol,
-                tap.listen_ports[link],
+                config,
+                f"tcp:127.0.0.1:{tap.listen_ports[link]}",
                 can_port,
-                f"[mavlink]\ncomponent_id = {component}\nstream_rate_hz = {STREAM_HZ}\n",
+                workdir / f"bridge-{name}.log",
+                "--vehicle",
+                name,
             )
             stack.callback(bridge.stop)
             rigs.append(
@@ -443,7 +436,7 @@ def flight(
             )
         ap.start()
         started = time.monotonic()
-        gcs = GroundStation(ap.port(0))
+        gcs = GroundStation(f"tcp:127.0.0.1:{ap.port(0)}")
         stack.callback(gcs.close)
         result = Flight(ap, gcs, rigs, started)
         try:
@@ -534,7 +527,12 @@ def phases(flight: Flight) -> dict[str, tuple[float, float]]:
     return {
         "motor test A": (tests["A"].sent, tests["A"].end),
         "takeoff and hover": (e["armed"], e["stall"]),
-        "hover after the stall, land": (e["resume"], e["disarmed"]),
+        # From 0.1 s after SIGCONT: the bridge judges the first inputs after the pause old
+        # until their rhythm confirms it (test_stall_recovers_after_sigcont: within 50 ms).
+        # To 0.2 s before the ground station saw the landing's disarm: the bridge may act on
+        # that HEARTBEAT within one output period of the tap's stamp, which the armed_at rule
+        # would count as armed (the HEARTBEAT tests judge the disarm).
+        "hover after the stall, land": (e["resume"] + 0.1, e["disarmed"] - 0.2),
         "motor test B (killed)": (tests["B"].sent, e["kill"]),
         "motor test C": (tests["C"].sent, tests["C"].end),
     }
@@ -547,24 +545,13 @@ PHASES = [
     "motor test B (killed)",
     "motor test C",
 ]
-STALL_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "finding: SITL's time_usec stands still while the process is stopped, so after SIGCONT "
-        "every SERVO_OUTPUT_RAW carries a time 1 s behind; bridge/mavlink/clock.py lets its "
-        "offset estimate rise by only 2 % of remote time, so the bridge judges the fresh "
-        "inputs ~1 s old and stays in FAILSAFE input stale for ~40 s (measured: 40.0 s) "
-        "while the autopilot flies on"
-    ),
-)
 
 
 def phase_params() -> list[Any]:
     params = []
     for rig in ("ckesc", "ft"):
         for phase in PHASES:
-            marks = [STALL_XFAIL] if phase == "hover after the stall, land" else []
-            params.append(pytest.param(rig, phase, marks=marks, id=f"{rig}-{phase}"))
+            params.append(pytest.param(rig, phase, id=f"{rig}-{phase}"))
     return params
 
 
@@ -631,7 +618,7 @@ def test_every_frame_carries_the_newest_motor_output(
 @pytest.mark.parametrize(
     ("rig_name", "phase"),
     [
-        pytest.param(r, p, marks=[STALL_XFAIL] if "stall" in p else [], id=f"{r}-{p}")
+        pytest.param(r, p, id=f"{r}-{p}")
         for r in ("ckesc", "ft")
         for p in ("takeoff and hover", "hover after the stall, land")
     ],
@@ -706,7 +693,6 @@ def test_stall_goes_safe_in_time(flight: Flight, rig_name: str) -> None:
     measured(f"{rig_name} failsafe after SIGSTOP", f"{ms(first_safe - last)} after the last input")
 
 
-@STALL_XFAIL
 @pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
 def test_stall_recovers_after_sigcont(flight: Flight, rig_name: str) -> None:
     """After SIGCONT the bridge tracks the motor outputs again within a few output periods."""
@@ -775,34 +761,27 @@ def test_ardupilot_motor_test_spins_the_right_motor(flight: Flight, rig_name: st
         )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "the bridge learns ArduCopter's arming only from its 1 Hz HEARTBEAT: the test's first "
-        "~0-1 s go out as zeros (a higher-rate HEARTBEAT request is being added to the daemon)"
-    ),
-)
 @pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
-def test_ardupilot_motor_test_from_its_first_frame(flight: Flight, rig_name: str) -> None:
-    """The first command frame after the first test output reached the bridge (one output
-    period later) already carries the test value."""
+def test_ardupilot_motor_test_within_a_heartbeat_period(flight: Flight, rig_name: str) -> None:
+    """The motor spins within one HEARTBEAT period (at the 20 Hz the bridge asks for and
+    ArduCopter grants) of the test's first output reaching the bridge, plus a tick and the
+    machine's slack. Not from the first frame: the bridge learns ArduCopter's arming from its
+    HEARTBEAT only (SERVO_OUTPUT_RAW carries none), so up to one period of the test's outputs
+    go out as zeros (measured 0-53 ms; on the first frame in some tests, not in others)."""
     rig = rig_of(flight, rig_name)
     delays = []
-    late = []
     for test in motor_tests_of(flight):
         first, motor = first_test_input(rig, test)
         mine = [c for f in rig.commands for c in f if c.motor == motor and c.t > first.t]
         spinning = [c for c in mine if c.value != 0]
         delays.append(spinning[0].t - first.t if spinning else float("inf"))
-        due = [c for c in mine if c.t > first.t + PERIOD_S]
-        if not due or not rig.matches(due[0].value, {rig.expected(TEST_PWM)}):
-            late.append(f"{test.label}: first frame {due[0] if due else None}")
     measured(
         f"{rig_name} motor test first non-zero frame",
         ", ".join(f"{t.label} {ms(d)}" for t, d in zip(motor_tests_of(flight), delays, strict=True))
         + " after the first test output",
     )
-    assert not late, "motor test not on the first frame: " + "; ".join(late)
+    bound = 1 / HEARTBEAT_HZ + MOTOR_TEST_SLACK_S
+    assert max(delays) <= bound, f"motor test delays {[ms(d) for d in delays]} (bound {ms(bound)})"
 
 
 def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
@@ -810,7 +789,7 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
     to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus;
     ArduCopter sends none of its own (SIM_ESC_TELEM 0)."""
     start, end = flight.events["hover"], flight.events["stall"]
-    received = flight.gcs.since(flight.started, "ESC_TELEMETRY_1_TO_4")
+    received = flight.gcs.received("ESC_TELEMETRY_1_TO_4", flight.started)
     own = [m for _, m in received if m.get_srcComponent() == 1]
     assert not own, f"ArduCopter sent ESC telemetry of its own: {own[:2]}"
     for rig in flight.rigs:
@@ -840,9 +819,14 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
             for t, m in received
             if m.get_srcComponent() == rig.component and start <= t <= end
         ]
-        assert len(mine) >= 10, (
+        sysid = mine[0][1].get_srcSystem() if mine else None
+        # The bridge sends ArduPilot's link ESC_TELEMETRY_1_TO_4 at 2 Hz (its per-link set,
+        # kept small for a telemetry radio); a boundary may cut one.
+        hz = len(mine) / (end - start)
+        assert 2 * (end - start) - 1.5 <= len(mine) <= 2 * (end - start) + 1.5, (
             f"{len(mine)} ESC_TELEMETRY_1_TO_4 from the {rig.name} bridge (component "
-            f"{rig.component}) reached the ground station in {end - start:.1f} s of hover"
+            f"{rig.component}) reached the ground station in {end - start:.1f} s of hover "
+            f"({hz:.1f} Hz; 2 Hz expected)"
         )
         for t, msg in mine:
             for m in range(4):
@@ -862,7 +846,7 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
                 )
         measured(
             f"{rig.name} ESC_TELEMETRY_1_TO_4 at the ground station",
-            f"{len(mine) / (end - start):.1f} Hz in hover, values as on the bus",
+            f"{hz:.1f} Hz in hover from {sysid}/{rig.component}, values as on the bus",
         )
 
 
@@ -878,7 +862,10 @@ def test_servo_output_rate(flight: Flight) -> None:
             f"{rate:.1f} Hz; gap p50 {ms(statistics.median(gaps))}, p99 {ms(pct(gaps, 0.99))},"
             f" max {ms(max(gaps))}",
         )
+        answers = stream_answers(rig.bridge.output(), "SERVO_OUTPUT_RAW")
+        measured(f"{rig.name} SERVO_OUTPUT_RAW request answered", answers)
         assert 0.9 * STREAM_HZ <= rate <= 1.1 * STREAM_HZ, f"{rig.name}: {rate:.1f} Hz"
+        assert f"ACCEPTED {STREAM_HZ} Hz" in answers, f"{rig.name}: ArduCopter answered {answers}"
     result, texts, rate = flight.servo_400
     measured(
         "SERVO_OUTPUT_RAW at 400 Hz (ground station link)",
@@ -906,7 +893,7 @@ def test_heartbeat_interval(flight: Flight) -> None:
     test = next(t for t in flight.motor_tests if t.label == "A")
     first_out: int | None = None
     newest_out = 0
-    for _, m in flight.gcs.since(test.sent):
+    for _, m in flight.gcs.received(after=test.sent):
         if m.get_type() == "SERVO_OUTPUT_RAW":
             newest_out = m.time_usec
             moved = any(getattr(m, f"servo{i}_raw") != 1000 for i in range(1, 5))
