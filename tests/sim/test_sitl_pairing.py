@@ -3,9 +3,9 @@ config/sitl.toml, `esc-bridge run` and `esc-bridge sim` as separate processes on
 udp_multicast bus (tests/sitl flies the real autopilots).
 
 The stand-in behaves as ArduCopter SITL does (../shared/sitl/README.md): MAVLink on a TCP
-server (SITL's SERIAL1, 5762), no SERVO_OUTPUT_RAW until MAV_CMD_SET_MESSAGE_INTERVAL asks for message
-36, then at the asked rate up to 200 Hz; motors 1000 µs disarmed, ~1100 µs armed at idle,
-~1590 µs in hover.
+server (SITL's SERIAL1, 5762), no SERVO_OUTPUT_RAW until MAV_CMD_SET_MESSAGE_INTERVAL asks for
+message 36, then at the asked rate up to 200 Hz; motors 1000 µs disarmed, ~1100 µs armed at
+idle, ~1590 µs in hover.
 """
 
 from __future__ import annotations
