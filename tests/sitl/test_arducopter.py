@@ -76,6 +76,10 @@ FT_FULL_SCALE_A = 20.0
 # The observer's and the tap's stamps, taken in two processes, may be this far apart (as in
 # test_px4.py's lag rule): a frame stamped just before the tap's stamp of the output it carries.
 CLOCK_SKEW_S = 0.001
+# An armed HEARTBEAT the tap stamped may reach the bridge's loop this much later on a loaded
+# machine (loopback delivered from ksoftirqd): one frame 3 ms after the tap's stamp still went
+# out disarmed at load ~5. Frames that close to the arming are not judged.
+ARMING_LATE_S = 0.010
 # A frame is judged against the motor output only while that output is fresh: newer than half
 # the input timeout at the tap. Older ones (the stall, the kill) are the failsafe tests' part.
 FRESH_S = INPUT_TIMEOUT_S / 2
@@ -489,12 +493,13 @@ def armed_at(rig: Rig, t: float) -> bool:
 
 def judged(rig: Rig, start: float, end: float) -> list[list[Command]]:
     """The frames sent in [start, end] that must carry the newest motor output: the autopilot
-    armed (its HEARTBEAT, forwarded a whole output period before the frame: the bridge obeys
-    it, not the outputs) and the newest motor output fresh (forwarded within FRESH_S)."""
+    armed (its HEARTBEAT, forwarded a whole output period and ARMING_LATE_S before the frame:
+    the bridge obeys it, not the outputs) and the newest motor output fresh (forwarded within
+    FRESH_S)."""
     out = []
     for frame in rig.commands:
         t = frame[0].t
-        if not start <= t <= end or not armed_at(rig, t - PERIOD_S):
+        if not start <= t <= end or not armed_at(rig, t - PERIOD_S - ARMING_LATE_S):
             continue
         i = rig.newest_index(t)
         if i >= 0 and t - rig.tap.servo[i].t <= FRESH_S:
