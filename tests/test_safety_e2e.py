@@ -103,7 +103,13 @@ def test_sigterm_at_any_moment_of_the_start_exits_zero(
     daemon = start_daemon()
     time.sleep(delay_s)
     daemon.proc.send_signal(signal.SIGTERM)
-    assert wait_exit(daemon) == 0, daemon.output
+    code = wait_exit(daemon)
+    if code == -signal.SIGTERM:
+        # Before the first line: at load 8 the interpreter's start-up outlasted 0.1 s. Then
+        # nothing was opened, logged or sent.
+        assert daemon.output.strip() == "" and throttles_since(observer, 0) == [], daemon.output
+    else:
+        assert code == 0, daemon.output
     assert "Traceback" not in daemon.output
     # Whatever was sent was safe.
     assert all(t == SAFE for _, t in throttles_since(observer, 0))
@@ -272,6 +278,8 @@ def test_a_stream_too_slow_never_starts_the_motors_and_one_slowing_in_flight_kee
     timeout) it goes on: no motor stop the autopilot did not ask for."""
     daemon = start_daemon()
     daemon.loop_pid()  # its link is open: the first HEARTBEAT is heard
+    # Its frames are on the bus (at load 8 the first came 2.25 s after the loop's start).
+    expect_throttles(observer, SAFE, ARM_TIMEOUT_S)
     pilot = rt_autopilot([1500] * 4, rate_hz=8)
     started = time.monotonic()
     time.sleep(2.5)
