@@ -1,4 +1,4 @@
-"""Tests for bridge.mixer: loading, geometry matrices, mixing, desaturation and slew limiting."""
+"""Tests for bridge.mixing: loading, geometry matrices, mixing, desaturation and slew limiting."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.errors import ConfigError
-from bridge.mixer import (
+from bridge.mixing.definition import (
     AXIS_VALID_RANGE,
     INPUT_NAMES,
     Mixer,
