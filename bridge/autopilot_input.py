@@ -38,13 +38,8 @@ from bridge.mavlink.actuators import (
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
 from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
-from bridge.mixing.definition import (
-    AXIS_VALID_RANGE,
-    PWM_RANGE_US,
-    AxisChannels,
-    Mixer,
-    MixerDefinition,
-)
+from bridge.mixing.definition import AXIS_VALID_RANGE, PWM_RANGE_US, MixerDefinition
+from bridge.mixing.mixer import AxisChannels, Mixer
 from bridge.relay import LoopEnd
 from bridge.safety import ControlInputs
 

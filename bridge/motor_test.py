@@ -39,7 +39,8 @@ from bridge.can_io import check_interface, is_transient, open_bus
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError, LinkError
 from bridge.escs.drivers import EscDriver, flush_safe_values, make_driver
-from bridge.mixing.definition import PWM_RANGE_US, MixerDefinition, load_mixer
+from bridge.mixing.definition import PWM_RANGE_US, MixerDefinition
+from bridge.mixing.loader import load_mixer
 
 __all__ = [
     "SPIN_RAMP_S",

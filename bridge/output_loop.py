@@ -43,8 +43,8 @@ from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import EscDriver, make_driver
 from bridge.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
-from bridge.mixing.definition import SlewLimiter
 from bridge.motor_test import test_frames
+from bridge.output.slew import SlewLimiter
 from bridge.relay import LoopEnd
 from bridge.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 

@@ -41,13 +41,8 @@ from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
 from bridge.mavlink_in import Endpoint, check_endpoints
 from bridge.mavlink_out import describe_sets
-from bridge.mixing.definition import (
-    AXIS_NAMES,
-    CHANNEL_COUNT,
-    PWM_RANGE_US,
-    MixerDefinition,
-    load_mixer,
-)
+from bridge.mixing.definition import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition
+from bridge.mixing.loader import load_mixer
 from bridge.zenoh_out import session_config
 
 __all__ = [

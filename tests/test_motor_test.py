@@ -18,7 +18,7 @@ from conftest import ESC_BRIDGE, Observer, can_args, multicast_bus
 from bridge.config import build_config
 from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
-from bridge.mixing.definition import load_mixer
+from bridge.mixing.loader import load_mixer
 from bridge.motor_test import (
     Decision,
     MotorTestCommand,

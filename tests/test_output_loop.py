@@ -16,7 +16,7 @@ from bridge.config import build_config
 from bridge.escs import ckesc
 from bridge.escs.drivers import CkescDriver
 from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
-from bridge.mixing.definition import SlewLimiter
+from bridge.output.slew import SlewLimiter
 from bridge.output_loop import CommandSelector, LoopSetup, OutputLoop
 from bridge.preflight import plan
 from bridge.relay import relay_pair

@@ -31,7 +31,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 from bridge.escs import ckesc
 from bridge.escs.drivers import CkescDriver
 from bridge.mailbox import MotorTest
-from bridge.mixing.definition import SlewLimiter
+from bridge.output.slew import SlewLimiter
 from bridge.output_loop import CommandSelector
 from bridge.safety import ControlInputs, SafetyLimits
 
