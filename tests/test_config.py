@@ -9,11 +9,11 @@ from typing import Any
 import pytest
 
 from bridge import preflight
-from bridge.busload import bus_load, frame_bits
 from bridge.cli import build_parser as _parser
 from bridge.cli.run import run_config
 from bridge.config import build_config, documented_keys, read_config_file, with_esc_count
 from bridge.errors import ConfigError
+from bridge.output.busload import bus_load, frame_bits
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))

@@ -100,7 +100,7 @@ def _percent(text: str) -> float:
 
 
 def _spin_seconds(text: str) -> float:
-    from bridge.motor_test import SPIN_SECONDS
+    from bridge.output.motor_test import SPIN_SECONDS
 
     try:
         value = float(text)
@@ -140,7 +140,7 @@ def spin_config(args: argparse.Namespace) -> BridgeConfig:
 
 
 def _esc_spin(args: argparse.Namespace) -> int:
-    from bridge import motor_test  # python-can and the drivers only for `esc spin`
+    from bridge.output import motor_test  # python-can and the drivers only for `esc spin`
 
     if not args.props_removed:
         args.spin_parser.error(PROPS_WARNING)

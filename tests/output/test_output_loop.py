@@ -15,12 +15,12 @@ from bridge.autopilot_input import InputSetup
 from bridge.config import build_config
 from bridge.escs import ckesc
 from bridge.escs.drivers import CkescDriver
-from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.output_loop import CommandSelector, LoopSetup, OutputLoop
+from bridge.output.safety import ControlInputs, LoopState, SafetyLimits
 from bridge.output.slew import SlewLimiter
-from bridge.output_loop import CommandSelector, LoopSetup, OutputLoop
 from bridge.preflight import plan
 from bridge.relay import relay_pair
-from bridge.safety import ControlInputs, LoopState, SafetyLimits
 
 MS = 1_000_000
 

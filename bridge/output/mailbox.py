@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from bridge.mixing.definition import INPUT_NAMES
-from bridge.safety import LoopState
+from bridge.output.safety import LoopState
 
 INPUT_VECTOR_LEN = len(INPUT_NAMES)
 

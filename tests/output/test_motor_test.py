@@ -19,7 +19,7 @@ from bridge.config import build_config
 from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
 from bridge.mixing.loader import load_mixer
-from bridge.motor_test import (
+from bridge.output.motor_test import (
     Decision,
     MotorTestCommand,
     MotorTestLimits,

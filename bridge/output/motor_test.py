@@ -8,7 +8,7 @@ Two ways in, one way out to the bus:
   limit, Ctrl-C, SIGTERM, an exception).
 * MAV_CMD_DO_MOTOR_TEST to the running daemon (:func:`decide`): the daemon checks the
   command against the vehicle (the mixer's motors, their input ranges, the time cap) and,
-  while the autopilot is disarmed, hands a :class:`~bridge.mailbox.MotorTest` to the output
+  while the autopilot is disarmed, hands a :class:`~bridge.output.mailbox.MotorTest` to the output
   loop, which sends it instead of the safe values until the time is up or the vehicle arms.
 
 Both build each tick's frames with :func:`test_frames` through the project's drivers
@@ -176,7 +176,7 @@ def plan_spin(config: BridgeConfig, request: SpinRequest) -> SpinPlan:
         ConfigError: the configuration is invalid, or the motor is not one of the mixer's.
     """
     # Imported here: busload imports the output loop, which imports this module.
-    from bridge.busload import check_bus_load
+    from bridge.output.busload import check_bus_load
 
     check_interface(config.can, config.source)
     mixer = load_mixer(config.mixer.name)

@@ -3,7 +3,7 @@
 One thread, in a process of its own where the bus allows it, with SCHED_FIFO priority when
 permitted, owns everything between the autopilot and the ESCs: the autopilot's link (read and
 decoded by :class:`~bridge.autopilot_input.AutopilotInput`, which mixes each input as it
-arrives), the safety decision (:func:`bridge.safety.decide`) and the CAN transmit handle.
+arrives), the safety decision (:func:`bridge.output.safety.decide`) and the CAN transmit handle.
 Nothing else runs there, so nothing else can hold it up: telemetry, Zenoh, logging and ground
 station commands live in the main process, which may stall without consequence.
 
@@ -11,9 +11,9 @@ It waits in ``select`` on the autopilot's link and the relay from the main proce
 next tick's absolute deadline on the monotonic clock, so it does not drift; a tick it wakes too
 late for is counted as an overrun and skipped, never caught up in a burst. Every tick it sends
 either the newest input's commands, rate-limited by the slew limiter, or the safe values, as
-:func:`~bridge.safety.decide` says; while the autopilot is disarmed a motor test from the main
-process (a ground station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.motor_test`) takes the
-place of the safe values: one motor at its test throttle, every other one safe.
+:func:`~bridge.output.safety.decide` says; while the autopilot is disarmed a motor test from the
+main process (a ground station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.output.motor_test`)
+takes the place of the safe values: one motor at its test throttle, every other one safe.
 
 It stops with a flush of safe values for ``shutdown_flush_ms`` when asked (the supervisor's
 ``stop_requested``), on SIGTERM, SIGHUP, SIGQUIT or SIGINT, and when the main process dies (its
@@ -37,16 +37,16 @@ from dataclasses import dataclass
 import can
 
 from bridge.autopilot_input import AutopilotInput, InputSetup
-from bridge.busload import IMMEDIATE_MAX_RATE_FACTOR
 from bridge.can_io import Receive, is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import EscDriver, make_driver
-from bridge.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
-from bridge.motor_test import test_frames
+from bridge.output.busload import IMMEDIATE_MAX_RATE_FACTOR
+from bridge.output.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
+from bridge.output.motor_test import test_frames
+from bridge.output.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 from bridge.output.slew import SlewLimiter
 from bridge.relay import LoopEnd
-from bridge.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 
 log = logging.getLogger(__name__)
 
@@ -90,10 +90,10 @@ def safety_limits(config: BridgeConfig) -> SafetyLimits:
 
 class CommandSelector:
     """Chooses, each tick, what goes on the bus: the newest input's commands (slew-limited),
-    one motor's test throttle, or the safe values, as :func:`~bridge.safety.decide` says.
+    one motor's test throttle, or the safe values, as :func:`~bridge.output.safety.decide` says.
 
     The loop's per-tick safety path, apart from the loop so that a model-based test can drive
-    exactly this code through random sequences of events (``tests/test_safety_model.py``).
+    exactly this code through random sequences of events (``tests/output/test_safety_model.py``).
     """
 
     def __init__(
