@@ -1,0 +1,197 @@
+"""`esc-bridge esc spin`: its plan and ramp, and the command through the console script against
+simulated ESCs (bridge.sim) on a cross-process udp_multicast bus, watched by a python-can
+observer."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+from conftest import ESC_BRIDGE, Observer, can_args, multicast_bus
+
+from bridge.config import build_config
+from bridge.escs import ckesc, ft
+from bridge.output.spin import SpinRequest, plan_spin, ramp_fraction
+from bridge.sim.runner import Simulator, make_escs
+
+
+def test_ramp_up_hold_ramp_down() -> None:
+    at = [ramp_fraction(t, 2.0, 0.5, 0.4) for t in (-0.1, 0.0, 0.25, 0.5, 1.0, 1.75, 1.99, 2.0)]
+    assert at == pytest.approx([0.0, 0.0, 0.2, 0.4, 0.4, 0.2, 0.008, 0.0])
+
+
+def test_spin_requests_are_checked() -> None:
+    for motor, throttle, seconds in ((0, 10, 2), (1, 101, 2), (1, math.nan, 2), (1, 10, 31)):
+        with pytest.raises(ValueError, match="expected"):
+            SpinRequest(motor, throttle, seconds)
+    config = build_config({"mixer": {"name": "hex-x"}}, "test")
+    plan = plan_spin(config, SpinRequest(6, 40, 1))
+    assert (plan.index, plan.esc_id, plan.fraction, plan.ramp_s) == (5, 6, 0.4, 0.25)
+
+
+# -- esc spin against simulated ESCs ----------------------------------------------------------
+
+
+@pytest.fixture
+def bus_args(can_port: int) -> list[str]:
+    return can_args(can_port)
+
+
+def simulator(can_port: int, protocol: str, ids: list[int]) -> Simulator:
+    escs = make_escs(protocol, len(ids), ids)  # type: ignore[arg-type]
+    return Simulator(multicast_bus(can_port), escs, own_bus=True).start()
+
+
+@pytest.fixture
+def ckesc_sim(can_port: int) -> Iterator[Simulator]:
+    sim = simulator(can_port, "ckesc", [1, 2, 3, 4])
+    yield sim
+    sim.close()
+
+
+def spin(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [ESC_BRIDGE, "esc", "spin", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def throttles(msg: can.Message) -> tuple[int, ...] | None:
+    frame = ckesc.decode(msg)
+    if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+        return None
+    return frame.message.throttles
+
+
+def test_ckesc_spin_ramps_holds_stops_in_time_and_ends_safe(
+    observer: Observer, ckesc_sim: Simulator, bus_args: list[str]
+) -> None:
+    proc = spin(
+        "--motor", "2", "--throttle", "30", "--seconds", "1.5", "--props-removed", *bus_args
+    )
+    observer.wait_for(lambda m: throttles(m) == (0, 600, 0, 0), 10.0)
+    time.sleep(0.3)  # holding: only motor 2 turns
+    rpm = [esc.motor.rpm for esc in ckesc_sim.escs]
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "motor 2 stopped, safe values sent: done" in out
+    time.sleep(0.2)
+    assert rpm[1] > 1000 and rpm[0] == rpm[2] == rpm[3] == 0
+
+    sent = [(m.timestamp, t) for _, m in observer.frames if (t := throttles(m)) is not None]
+    assert {(t[0], t[2], t[3]) for _, t in sent} == {(0, 0, 0)}  # the others: safe throughout
+    motor2 = [t[1] for _, t in sent]
+    peak = motor2.index(600)
+    last = max(i for i, v in enumerate(motor2) if v)
+    assert motor2[0] < 20  # starts from stopped...
+    assert motor2[:peak] == sorted(motor2[:peak]) and peak >= 100  # ...up over 0.5 s at 400 Hz
+    hold = [i for i, v in enumerate(motor2) if v == 600]
+    assert len(hold) >= 0.4 * 400  # held for the middle of the spin
+    assert motor2[hold[-1] : last + 1] == sorted(motor2[hold[-1] : last + 1], reverse=True)
+    assert sent[last][0] - sent[0][0] <= 1.5 + 0.02  # the hard time limit
+    safe = motor2[last + 1 :]
+    assert safe == [0] * len(safe) and 60 <= len(safe) <= 100  # 200 ms of safe values
+
+
+def test_ft_spin_commands_one_esc_in_its_mode_and_brakes_the_others(
+    observer: Observer, can_port: int, bus_args: list[str], tmp_path: Path
+) -> None:
+    config = tmp_path / "ft.toml"
+    config.write_text(
+        '[output]\nprotocol = "ft"\n[escs]\nids = [21, 22, 23, 24]\nft_mode = "current"\n'
+        "ft_max_current_a = 10.0\nft_brake_current_a = 2.0\n"
+    )
+    sim = simulator(can_port, "ft", [21, 22, 23, 24])
+    try:
+        proc = spin(
+            "--config", str(config), "--motor", "3", "--throttle", "40", "--seconds", "1.2",
+            "--props-removed", *bus_args,
+        )  # fmt: skip
+        observer.wait_for(lambda m: ft_current(m) == (23, 4.0), 10.0)
+        time.sleep(0.2)  # holding: only motor 3 turns
+        rpm = [esc.motor.rpm for esc in sim.escs]
+        out, err = proc.communicate(timeout=10)
+    finally:
+        sim.close()
+    assert proc.returncode == 0, err
+    assert "(FT ESC 23, current mode)" in out and "FT current 4.00 A" in out
+    assert rpm[2] > 1000 and rpm[0] == rpm[1] == rpm[3] == 0
+    time.sleep(0.2)
+    telemetry = (ft.RealtimeData0, ft.RealtimeData1, ft.RealtimeData2)  # from the simulator
+    commands = [
+        (f.esc_id, f.message)
+        for _, m in observer.frames
+        if (f := ft.decode(m)) is not None and not isinstance(f.message, telemetry)
+    ]
+    spun = [m.current_a for esc, m in commands if esc == 23 and isinstance(m, ft.SetCurrent)]
+    assert max(spun) == pytest.approx(4.0) and spun[0] < 0.5 and spun[-1] < 0.5  # the ramps
+    others = {(esc, type(m), getattr(m, "current_a", None)) for esc, m in commands if esc != 23}
+    assert others == {(esc, ft.SetCurrentBrake, 2.0) for esc in (21, 22, 24)}
+    last = max(i for i, (esc, m) in enumerate(commands) if isinstance(m, ft.SetCurrent))
+    flush = commands[last + 1 :]  # the safe values: the brake, for every ESC
+    assert {(esc, type(m)) for esc, m in flush} == {
+        (e, ft.SetCurrentBrake) for e in (21, 22, 23, 24)
+    }
+    assert 60 <= len(flush) <= 100  # 200 ms at 4 x 100 frames/s
+
+
+def ft_current(msg: can.Message) -> tuple[int, float] | None:
+    frame = ft.decode(msg)
+    if frame is None or not isinstance(frame.message, ft.SetCurrent):
+        return None
+    return frame.esc_id, frame.message.current_a
+
+
+def test_sigint_mid_spin_sends_safe_values_then_exits(
+    observer: Observer, ckesc_sim: Simulator, bus_args: list[str]
+) -> None:
+    proc = spin("--motor", "4", "--throttle", "20", "--seconds", "10", "--props-removed", *bus_args)
+    observer.wait_for(lambda m: throttles(m) == (0, 0, 0, 400), 10.0)
+    assert ckesc_sim.escs[3].motor.rpm > 0
+    proc.send_signal(signal.SIGINT)
+    signalled = time.monotonic()
+    out, err = proc.communicate(timeout=5)
+    assert proc.returncode == 130, err
+    # The safe values go out at once (below); the exit follows the flush, and on a loaded
+    # machine (load 11 seen) the interpreter's teardown takes its time.
+    assert time.monotonic() - signalled < 3.0
+    assert "motor 4 stopped, safe values sent: interrupted" in out
+    time.sleep(0.2)
+    first_safe, _ = observer.wait_for(lambda m: throttles(m) == (0, 0, 0, 0), 1.0, signalled)
+    assert first_safe - signalled < 0.1
+    after = [t for m in observer.since(first_safe) if (t := throttles(m)) is not None]
+    assert set(after) == {(0, 0, 0, 0)} and len(after) >= 60
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--motor", "1", "--throttle", "10", "--seconds", "2"], "without --props-removed"),
+        (["--motor", "1", "--throttle", "150", "--seconds", "2", "--props-removed"], "--throttle"),
+        (["--motor", "1", "--throttle", "-1", "--seconds", "2", "--props-removed"], "--throttle"),
+        (["--motor", "1", "--throttle", "nan", "--seconds", "2", "--props-removed"], "--throttle"),
+        (["--motor", "0", "--throttle", "10", "--seconds", "2", "--props-removed"], "--motor"),
+        (["--motor", "5", "--throttle", "10", "--seconds", "2", "--props-removed"], "--motor 5"),
+        (["--motor", "1", "--throttle", "10", "--seconds", "31", "--props-removed"], "--seconds"),
+        (["--motor", "1", "--throttle", "10", "--seconds", "0.5", "--props-removed"], "--seconds"),
+    ],
+    ids=["no-props-removed", "throttle-150", "throttle-neg", "throttle-nan", "motor-0",
+         "motor-5", "seconds-31", "seconds-0.5"],
+)  # fmt: skip
+def test_refused_before_anything_is_sent(
+    observer: Observer, bus_args: list[str], args: list[str], message: str
+) -> None:
+    proc = spin(*args, *bus_args)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 2
+    assert message in err and "Traceback" not in err
+    time.sleep(0.2)
+    assert observer.frames == []
