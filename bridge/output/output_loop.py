@@ -271,7 +271,6 @@ class OutputLoop:
             self._relay.close()
         if self._bus is not None:
             self._bus.shutdown()
-            self._bus = None
 
     def read(self, now_ns: int) -> bool:
         """Take what arrived at ``now_ns`` (the autopilot's link, the main process's relay);
