@@ -100,7 +100,7 @@ def _percent(text: str) -> float:
 
 
 def _spin_seconds(text: str) -> float:
-    from bridge.output.spin import SPIN_SECONDS
+    from bridge.output.motor_test import SPIN_SECONDS
 
     try:
         value = float(text)
@@ -145,7 +145,7 @@ def _esc_spin(args: argparse.Namespace) -> int:
 
     if not args.props_removed:
         args.spin_parser.error(PROPS_WARNING)
-    request = spin.SpinRequest(args.motor, args.throttle, args.seconds)
+    request = motor_test.SpinRequest(args.motor, args.throttle, args.seconds)
     plan = spin.plan_spin(spin_config(args), request)
     config = plan.config
     if config.output.protocol == "ckesc":

@@ -38,19 +38,27 @@ if TYPE_CHECKING:
     from bridge.escs.drivers import EscDriver
 
 __all__ = [
+    "SPIN_RAMP_S",
+    "SPIN_SECONDS",
     "Decision",
     "MotorTestCommand",
     "MotorTestLimits",
     "MotorTestPlan",
+    "SpinRequest",
     "TestOrder",
     "ThrottleType",
     "Verdict",
     "command_text",
     "decide",
     "limits_for",
+    "ramp_fraction",
     "test_frames",
 ]
 
+SPIN_SECONDS: Final = (1.0, 30.0)
+"""The shortest and longest ``esc spin`` (the hard time limit, ramps included), s."""
+SPIN_RAMP_S: Final = 0.5
+"""Ramp up at the start and down at the end of a spin, s (at most a quarter of the spin)."""
 SEQUENCE_GAP: Final = 0.5
 """Between the motors of a DO_MOTOR_TEST sequence, every motor is held safe for this fraction
 of the per-motor time (ArduCopter pauses the same way), so each motor is seen on its own."""
@@ -91,6 +99,42 @@ def command_text(config: BridgeConfig, fraction: float) -> str:
     if escs.ft_mode == "duty":
         return f"FT duty {fraction * escs.ft_max_duty:.3f}"
     return f"FT {round(fraction * escs.ft_max_erpm)} erpm"
+
+
+# -- esc spin: the request and the ramp (the spin itself: bridge/output/spin.py) -------------
+
+
+@dataclass(frozen=True)
+class SpinRequest:
+    """What ``esc spin`` was asked: motor number (1-based), throttle in percent of the ESC's
+    full range, and the hard time limit in seconds, ramps included.
+
+    Raises:
+        ValueError: a value out of range, NaN or infinite (the value is in the message).
+    """
+
+    motor: int
+    throttle_pct: float
+    seconds: float
+
+    def __post_init__(self) -> None:
+        if isinstance(self.motor, bool) or not isinstance(self.motor, int) or self.motor < 1:
+            raise ValueError(f"motor={self.motor!r}: expected a motor number 1, 2, ...")
+        if not 0.0 <= self.throttle_pct <= 100.0:
+            raise ValueError(f"throttle_pct={self.throttle_pct!r}: expected 0..100")
+        low, high = SPIN_SECONDS
+        if not low <= self.seconds <= high:
+            raise ValueError(f"seconds={self.seconds!r}: expected {low:g}..{high:g}")
+
+
+def ramp_fraction(elapsed_s: float, seconds: float, ramp_s: float, target: float) -> float:
+    """The spin's throttle ``elapsed_s`` into it: up from 0 over ``ramp_s``, held at ``target``,
+    down to 0 over the last ``ramp_s`` of ``seconds``; 0 outside the spin."""
+    if not 0.0 <= elapsed_s < seconds:
+        return 0.0
+    if ramp_s <= 0.0:
+        return target
+    return target * min(1.0, elapsed_s / ramp_s, (seconds - elapsed_s) / ramp_s)
 
 
 # -- MAV_CMD_DO_MOTOR_TEST --------------------------------------------------------------------

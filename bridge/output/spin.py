@@ -27,51 +27,20 @@ from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.mixing.definition import MixerDefinition
 from bridge.mixing.loader import load_mixer
 from bridge.output.busload import check_bus_load
-from bridge.output.motor_test import test_frames
+from bridge.output.motor_test import SPIN_RAMP_S, SpinRequest, ramp_fraction, test_frames
 
 __all__ = [
-    "SPIN_RAMP_S",
-    "SPIN_SECONDS",
     "SpinPlan",
     "SpinProgress",
-    "SpinRequest",
     "SpinResult",
     "plan_spin",
-    "ramp_fraction",
     "spin",
 ]
 
-SPIN_SECONDS: Final = (1.0, 30.0)
-"""The shortest and longest ``esc spin`` (the hard time limit, ramps included), s."""
-SPIN_RAMP_S: Final = 0.5
-"""Ramp up at the start and down at the end of a spin, s (at most a quarter of the spin)."""
 SPIN_PROGRESS_S: Final = 0.5
 """A spin reports its progress this often, and at each change of phase."""
 SPIN_MIN_FLUSH_MS: Final = 50
 """Safe values are sent at least this long after a spin, even with shutdown_flush_ms 0."""
-
-
-@dataclass(frozen=True)
-class SpinRequest:
-    """What ``esc spin`` was asked: motor number (1-based), throttle in percent of the ESC's
-    full range, and the hard time limit in seconds, ramps included.
-
-    Raises:
-        ValueError: a value out of range, NaN or infinite (the value is in the message).
-    """
-
-    motor: int
-    throttle_pct: float
-    seconds: float
-
-    def __post_init__(self) -> None:
-        if isinstance(self.motor, bool) or not isinstance(self.motor, int) or self.motor < 1:
-            raise ValueError(f"motor={self.motor!r}: expected a motor number 1, 2, ...")
-        if not 0.0 <= self.throttle_pct <= 100.0:
-            raise ValueError(f"throttle_pct={self.throttle_pct!r}: expected 0..100")
-        low, high = SPIN_SECONDS
-        if not low <= self.seconds <= high:
-            raise ValueError(f"seconds={self.seconds!r}: expected {low:g}..{high:g}")
 
 
 @dataclass(frozen=True)
@@ -121,16 +90,6 @@ def plan_spin(config: BridgeConfig, request: SpinRequest) -> SpinPlan:
     output = mixer.outputs[request.motor - 1]
     fraction = min(request.throttle_pct / 100.0, output.maximum)
     return SpinPlan(config, mixer, request, fraction, min(SPIN_RAMP_S, request.seconds / 4))
-
-
-def ramp_fraction(elapsed_s: float, seconds: float, ramp_s: float, target: float) -> float:
-    """The spin's throttle ``elapsed_s`` into it: up from 0 over ``ramp_s``, held at ``target``,
-    down to 0 over the last ``ramp_s`` of ``seconds``; 0 outside the spin."""
-    if not 0.0 <= elapsed_s < seconds:
-        return 0.0
-    if ramp_s <= 0.0:
-        return target
-    return target * min(1.0, elapsed_s / ramp_s, (seconds - elapsed_s) / ramp_s)
 
 
 Phase = Literal["ramp up", "hold", "ramp down"]

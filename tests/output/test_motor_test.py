@@ -1,4 +1,4 @@
-"""Motor tests: DO_MOTOR_TEST decisions as a table."""
+"""Motor tests: DO_MOTOR_TEST decisions as a table, and the spin's ramp."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from bridge.output.motor_test import (
     Verdict,
     decide,
     limits_for,
+    ramp_fraction,
 )
 
 dialect = load_dialect()
@@ -104,3 +105,8 @@ def test_pwm_maps_through_the_mixers_input_range() -> None:
     assert decide(MotorTestCommand(1, PWM, 1500, 1), hil).verdict is Verdict.DENIED
     quad_x = limits_for(load_mixer("quad-x"), (1100.0, 1900.0), 5.0)  # rotors: the channel range
     assert decide(MotorTestCommand(2, PWM, 1500, 1), quad_x).plan == MotorTestPlan(1, 1, 0.5, 1, 0)
+
+
+def test_ramp_up_hold_ramp_down() -> None:
+    at = [ramp_fraction(t, 2.0, 0.5, 0.4) for t in (-0.1, 0.0, 0.25, 0.5, 1.0, 1.75, 1.99, 2.0)]
+    assert at == pytest.approx([0.0, 0.0, 0.2, 0.4, 0.4, 0.2, 0.008, 0.0])

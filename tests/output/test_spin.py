@@ -17,13 +17,9 @@ from conftest import ESC_BRIDGE, Observer, can_args, multicast_bus
 
 from bridge.config import build_config
 from bridge.escs import ckesc, ft
-from bridge.output.spin import SpinRequest, plan_spin, ramp_fraction
+from bridge.output.motor_test import SpinRequest
+from bridge.output.spin import plan_spin
 from bridge.sim.runner import Simulator, make_escs
-
-
-def test_ramp_up_hold_ramp_down() -> None:
-    at = [ramp_fraction(t, 2.0, 0.5, 0.4) for t in (-0.1, 0.0, 0.25, 0.5, 1.0, 1.75, 1.99, 2.0)]
-    assert at == pytest.approx([0.0, 0.0, 0.2, 0.4, 0.4, 0.2, 0.008, 0.0])
 
 
 def test_spin_requests_are_checked() -> None:
