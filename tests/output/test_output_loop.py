@@ -214,6 +214,14 @@ def test_tick_a_slow_stream_never_starts_the_motors(rig: Rig) -> None:
     assert rig.state() == LoopState.RUNNING
 
 
+def test_tick_heartbeat_lost_stops_the_motors(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    assert rig.tick(ahead_ms=3100) == SAFE  # arming_timeout_ms (3000) without a HEARTBEAT
+    assert rig.state() == LoopState.HEARTBEAT_LOST
+
+
 def test_tick_invalid_input_stops_the_motors(rig: Rig) -> None:
     rig.heartbeat(armed=True)
     rig.outputs(PWM)
