@@ -18,7 +18,7 @@ For every chunk read it:
   how many arrived from the loop's counters).
 
 It writes to the link what the main process relays the other way. Nothing here blocks or logs
-per frame: counters go to :class:`~bridge.mailbox.LoopStats`.
+per frame: counters go to :class:`~bridge.output.mailbox.LoopStats`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ import time
 from dataclasses import dataclass
 
 from bridge.config import BridgeConfig
-from bridge.mailbox import InputSnapshot, LoopStats
 from bridge.mavlink import load_dialect
 from bridge.mavlink.actuators import (
     HEARTBEAT_ID,
@@ -38,9 +37,11 @@ from bridge.mavlink.actuators import (
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
 from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
-from bridge.mixer import AXIS_VALID_RANGE, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition
+from bridge.mixing.definition import AXIS_VALID_RANGE, PWM_RANGE_US, MixerDefinition
+from bridge.mixing.mixer import AxisChannels, Mixer
+from bridge.output.mailbox import InputSnapshot, LoopStats
+from bridge.output.safety import ControlInputs
 from bridge.relay import LoopEnd
-from bridge.safety import ControlInputs
 
 # Chunks read per wake-up at most: enough to empty the socket at every tick whatever the
 # link carries (a queue that grew would make every input old), few enough that a flood on the
@@ -60,7 +61,7 @@ class InputSetup:
 
 
 class AutopilotInput:
-    """Reads the autopilot's link and keeps :class:`~bridge.safety.ControlInputs` current.
+    """Reads the autopilot's link and keeps :class:`~bridge.output.safety.ControlInputs` current.
 
     Use :meth:`open` once, then :meth:`on_readable` when :attr:`fd` polls readable,
     :meth:`on_relay` when the relay does, :meth:`service` every wake-up, :meth:`close` at the end.

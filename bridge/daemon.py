@@ -1,7 +1,7 @@
 """The bridge daemon: the supervisor of the control loop, and the best-effort side.
 
 Start-up validates everything before a frame is sent (config, mixer, bus load, the MAVLink
-URLs), then starts the control loop (:mod:`bridge.output_loop`: in a real-time process of its
+URLs), then starts the control loop (:mod:`bridge.output.output_loop`: in a real-time process of its
 own where the bus allows it), which owns the autopilot's link and the CAN transmit handle and
 sends safe values until valid, armed, fresh input arrives. Everything else lives here, in the
 main process, and may stall without touching the control path: the MAVLink side of the
@@ -39,10 +39,10 @@ from bridge.config import BridgeConfig
 from bridge.errors import BridgeError, LinkError
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.fanout import Fanout
-from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.mavlink_in import MavlinkLink
-from bridge.mixer import INPUT_NAMES
-from bridge.motor_test import (
+from bridge.mixing.definition import INPUT_NAMES
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.motor_test import (
     Decision,
     MotorTestCommand,
     MotorTestLimits,
@@ -51,11 +51,11 @@ from bridge.motor_test import (
     decide,
     limits_for,
 )
-from bridge.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
+from bridge.output.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
+from bridge.output.safety import SENDING_COMMANDS, LoopState
 from bridge.preflight import Plan
 from bridge.record import Recording
 from bridge.relay import MainConnection, relay_pair
-from bridge.safety import SENDING_COMMANDS, LoopState
 from bridge.stopping import StopSignals
 from bridge.telemetry.state import EscTable
 
@@ -101,7 +101,7 @@ class MotorTestControl:
     comes from a system the configuration allows (``[mavlink] command_senders``: by default the
     ground stations' usual 255 and the autopilot's own system); with a signing key, unsigned
     commands never get this far. Otherwise MAV_RESULT_DENIED. A valid test
-    (:func:`bridge.motor_test.decide`) starts only while the control loop knows the autopilot
+    (:func:`bridge.output.motor_test.decide`) starts only while the control loop knows the autopilot
     to be disarmed (its HEARTBEAT within the arming timeout) and is sending; otherwise
     MAV_RESULT_TEMPORARILY_REJECTED, with a STATUSTEXT saying why. A new command replaces a
     running test; throttle 0 stops it. The loop ends a test by itself at its time, the moment

@@ -85,7 +85,7 @@ from bridge.mavlink.transport import (
     Transport,
     parse_url,
 )
-from bridge.mixer import INPUT_NAMES
+from bridge.mixing.definition import INPUT_NAMES
 
 __all__ = [
     "ACCEPTED_URL_FORMS",

@@ -34,14 +34,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
-from bridge.busload import check_bus_load
 from bridge.can_io import check_interface
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
 from bridge.mavlink_in import Endpoint, check_endpoints
 from bridge.mavlink_out import describe_sets
-from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition, load_mixer
+from bridge.mixing.definition import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition
+from bridge.mixing.loader import load_mixer
+from bridge.output.busload import check_bus_load
 from bridge.zenoh_out import session_config
 
 __all__ = [

@@ -1,1 +1,1 @@
-"""Bundled mixer definitions (TOML data, loaded by bridge.mixer); see README.md here."""
+"""Bundled mixer definitions (TOML data, loaded by bridge.mixing); see README.md here."""

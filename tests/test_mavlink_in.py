@@ -35,7 +35,7 @@ from bridge.mavlink_in import (
     MavlinkLink,
     parse_url,
 )
-from bridge.mixer import INPUT_NAMES
+from bridge.mixing.definition import INPUT_NAMES
 
 KEY = bytes(range(32))
 ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED

@@ -26,7 +26,8 @@ from bridge.config import SECTIONS, BridgeConfig, build_config, read_config_file
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV
 from bridge.mavlink_in import Endpoint, MavlinkLink, check_endpoints
-from bridge.mixer import Mixer, load_mixer
+from bridge.mixing.loader import load_mixer
+from bridge.mixing.mixer import Mixer
 from bridge.preflight import SOURCE_VALID_RANGES, plan
 
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))

@@ -212,7 +212,7 @@ def monitor_config(args: argparse.Namespace) -> tuple[str, BridgeConfig, str]:
         config = dataclasses.replace(config, zenoh=zconfig)
         prefix = args.prefix or monitor.prefix_of(from_file)
     if source == "can" and not config.escs.ids:
-        from bridge.mixer import load_mixer
+        from bridge.mixing.loader import load_mixer
 
         config = with_esc_count(config, len(load_mixer(config.mixer.name).outputs))
     pairs, ids = config.telemetry.pole_pairs, config.escs.ids

@@ -162,7 +162,7 @@ def sim_config(args: argparse.Namespace) -> BridgeConfig:
         config = build_config(merge(raw, overrides), args.config)
     count = len(config.escs.ids)
     if not count:
-        from bridge.mixer import load_mixer
+        from bridge.mixing.loader import load_mixer
 
         count = len(load_mixer(config.mixer.name).outputs)
     return with_esc_count(config, count)

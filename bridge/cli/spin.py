@@ -100,7 +100,7 @@ def _percent(text: str) -> float:
 
 
 def _spin_seconds(text: str) -> float:
-    from bridge.motor_test import SPIN_SECONDS
+    from bridge.output.motor_test import SPIN_SECONDS
 
     try:
         value = float(text)
@@ -140,12 +140,13 @@ def spin_config(args: argparse.Namespace) -> BridgeConfig:
 
 
 def _esc_spin(args: argparse.Namespace) -> int:
-    from bridge import motor_test  # python-can and the drivers only for `esc spin`
+    # python-can and the drivers only for `esc spin`
+    from bridge.output import motor_test, spin
 
     if not args.props_removed:
         args.spin_parser.error(PROPS_WARNING)
     request = motor_test.SpinRequest(args.motor, args.throttle, args.seconds)
-    plan = motor_test.plan_spin(spin_config(args), request)
+    plan = spin.plan_spin(spin_config(args), request)
     config = plan.config
     if config.output.protocol == "ckesc":
         channel = config.escs.ckesc_channels[plan.index]
@@ -160,13 +161,13 @@ def _esc_spin(args: argparse.Namespace) -> int:
         flush=True,
     )
 
-    def show(progress: motor_test.SpinProgress) -> None:
+    def show(progress: spin.SpinProgress) -> None:
         print(
             f"  {progress.elapsed_s:5.2f} s  {progress.phase:<9}  {100 * progress.fraction:5.1f}%",
             flush=True,
         )
 
-    result = motor_test.spin(plan, progress=show)
+    result = spin.spin(plan, progress=show)
     print(
         f"motor {request.motor} stopped, safe values sent: {result.ended} after "
         f"{result.elapsed_s:.2f} s, {result.frames_sent} frames, then {result.safe_frames_sent} "

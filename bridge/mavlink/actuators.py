@@ -9,8 +9,8 @@ frame without the extensions read the missing fields as 0. tests/mavlink/test_ac
 checks every layout against pymavlink's dialect.
 
 The input vector has :data:`INPUT_VECTOR_LEN` floats in the order of
-``bridge.mixer.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means absent. The
-semantics are those of :class:`bridge.mavlink_in.MavlinkLink`'s decoders:
+``bridge.mixing.definition.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means
+absent. The semantics are those of :class:`bridge.mavlink_in.MavlinkLink`'s decoders:
 
 ======================================  ===================================================
  source (``[mavlink] source``)           message and rule
@@ -50,7 +50,7 @@ from typing import Final, get_args
 from bridge.config import MavlinkSource
 from bridge.errors import ConfigError
 from bridge.mavlink.frames import Frame
-from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, INPUT_NAMES
+from bridge.mixing.definition import AXIS_NAMES, CHANNEL_COUNT, INPUT_NAMES
 
 __all__ = [
     "ACTUATOR_CONTROL_TARGET_ID",

@@ -25,8 +25,10 @@ land        3      down to 1150 µs, touch down at idle
 disarm      3      disarmed, 1000 µs
 ==========  =====  ==============================================================
 
-Motor numbers, positions and spin directions are ArduPilot's for the X frames (the same as
-``mixers/quad-x.toml``, ``hex-x.toml`` and ``octo-x.toml``).
+Motor numbers, positions and spin directions are those of the bundled X mixers
+(``mixers/quad-x.toml``, ``hex-x.toml`` and ``octo-x.toml``: ArduPilot's order), and the roll,
+pitch and yaw factors come from the geometry code the bridge mixes with
+(:func:`bridge.mixing.geometry.mix_matrix`).
 
 Only the project's MAVLink dialect module is used (:func:`bridge.mavlink.load_dialect`, always
 MAVLink 2), never ``mavutil``, so the wire version does not depend on ``MAVLINK20``.
@@ -34,6 +36,7 @@ MAVLink 2), never ``mavutil``, so the wire version does not depend on ``MAVLINK2
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import socket
@@ -44,28 +47,13 @@ from types import TracebackType
 from typing import Any, Final, Literal, Self
 
 from bridge.mavlink import load_dialect
+from bridge.mixing.geometry import mix_matrix
+from bridge.mixing.loader import load_mixer
 
 log = logging.getLogger(__name__)
 
 Airframe = Literal["quad", "hex", "octo"]
 AIRFRAMES: Final[tuple[Airframe, ...]] = ("quad", "hex", "octo")
-
-# (angle clockwise from the nose in degrees, spin seen from above) of each motor, in ArduPilot's
-# motor order for the X frame classes.
-GEOMETRY: Final[dict[Airframe, tuple[tuple[float, Literal["CW", "CCW"]], ...]]] = {
-    "quad": ((45, "CCW"), (-135, "CCW"), (-45, "CW"), (135, "CW")),
-    "hex": ((90, "CW"), (-90, "CCW"), (-30, "CW"), (150, "CCW"), (30, "CCW"), (-150, "CW")),
-    "octo": (
-        (22.5, "CW"),
-        (-157.5, "CW"),
-        (67.5, "CCW"),
-        (157.5, "CCW"),
-        (-22.5, "CCW"),
-        (-112.5, "CCW"),
-        (-67.5, "CW"),
-        (112.5, "CW"),
-    ),
-}
 
 PWM_STOP_US: Final = 1000
 PWM_MAX_US: Final = 2000
@@ -116,35 +104,31 @@ def motor_count(airframe: Airframe) -> int:
     Raises:
         ValueError: an unknown airframe.
     """
-    return len(_geometry(airframe))
+    return len(factors(airframe))
 
 
+@functools.cache
 def factors(airframe: Airframe) -> tuple[tuple[float, float, float], ...]:
     """(roll, pitch, yaw) factor of each motor, each axis scaled to a largest magnitude of 1.
 
-    Positive roll is right side down (the left motors speed up), positive pitch nose up (the
-    front motors), positive yaw nose right (the counter-clockwise motors, whose drag turns the
-    frame clockwise).
+    The columns of the bundled ``<airframe>-x`` mixer's mix matrix: positive roll is right side
+    down (the left motors speed up), positive pitch nose up (the front motors), positive yaw
+    nose right (the counter-clockwise motors, whose drag turns the frame clockwise).
 
     Raises:
         ValueError: an unknown airframe.
     """
-    raw = [
-        (
-            -math.sin(math.radians(angle)),
-            math.cos(math.radians(angle)),
-            1.0 if spin == "CCW" else -1.0,
-        )
-        for angle, spin in _geometry(airframe)
-    ]
-    scales = [max(abs(motor[axis]) for motor in raw) for axis in range(3)]
+    if airframe not in AIRFRAMES:
+        raise ValueError(f"unknown airframe {airframe!r}; expected one of {', '.join(AIRFRAMES)}")
+    matrix = mix_matrix(load_mixer(f"{airframe}-x").rotors)
+    scales = [max(abs(row[axis]) for row in matrix) for axis in range(3)]
     return tuple(
         (
             _tidy(roll / scales[0]),
             _tidy(pitch / scales[1]),
             _tidy(yaw / scales[2]),
         )
-        for roll, pitch, yaw in raw
+        for roll, pitch, yaw, _ in matrix
     )
 
 
@@ -194,15 +178,6 @@ def phase_start(name: str) -> float:
             return start
         start += duration
     raise ValueError(f"no phase {name!r}; expected one of {', '.join(p for p, _ in PHASES)}")
-
-
-def _geometry(airframe: str) -> tuple[tuple[float, Literal["CW", "CCW"]], ...]:
-    try:
-        return GEOMETRY[airframe]  # type: ignore[index]
-    except KeyError:
-        raise ValueError(
-            f"unknown airframe {airframe!r}; expected one of {', '.join(AIRFRAMES)}"
-        ) from None
 
 
 def _tidy(x: float) -> float:

@@ -25,7 +25,7 @@ from bridge.mavlink.actuators import (
     heartbeat_armed,
 )
 from bridge.mavlink.frames import Frame, FrameScanner
-from bridge.mixer import INPUT_NAMES
+from bridge.mixing.definition import INPUT_NAMES
 
 DIALECT: Any = load_dialect()
 ARMED = DIALECT.MAV_MODE_FLAG_SAFETY_ARMED

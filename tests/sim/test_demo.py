@@ -22,7 +22,7 @@ from bridge import preflight
 from bridge.config import build_config
 from bridge.demo import DemoOptions, DemoPorts, bridge_config, bridge_settings, toml_text
 from bridge.mavlink import load_dialect
-from bridge.mixer import load_mixer
+from bridge.mixing.loader import load_mixer
 from bridge.sim.autopilot import (
     AIRFRAMES,
     ARMED_PHASES,

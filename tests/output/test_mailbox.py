@@ -10,7 +10,7 @@ import struct
 import time
 from typing import Any
 
-from bridge.mailbox import InputSnapshot, MotorTestBlock, SharedBlock
+from bridge.output.mailbox import InputSnapshot, MotorTestBlock, SharedBlock
 
 
 def _reader(block: SharedBlock, ready: Any, distinct: Any, out: Any) -> None:

@@ -3,7 +3,7 @@
 One thread, in a process of its own where the bus allows it, with SCHED_FIFO priority when
 permitted, owns everything between the autopilot and the ESCs: the autopilot's link (read and
 decoded by :class:`~bridge.autopilot_input.AutopilotInput`, which mixes each input as it
-arrives), the safety decision (:func:`bridge.safety.decide`) and the CAN transmit handle.
+arrives), the safety decision (:func:`bridge.output.safety.decide`) and the CAN transmit handle.
 Nothing else runs there, so nothing else can hold it up: telemetry, Zenoh, logging and ground
 station commands live in the main process, which may stall without consequence.
 
@@ -11,9 +11,11 @@ It waits in ``select`` on the autopilot's link and the relay from the main proce
 next tick's absolute deadline on the monotonic clock, so it does not drift; a tick it wakes too
 late for is counted as an overrun and skipped, never caught up in a burst. Every tick it sends
 either the newest input's commands, rate-limited by the slew limiter, or the safe values, as
-:func:`~bridge.safety.decide` says; while the autopilot is disarmed a motor test from the main
-process (a ground station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.motor_test`) takes the
-place of the safe values: one motor at its test throttle, every other one safe.
+:func:`~bridge.output.safety.decide` says; while the autopilot is disarmed a motor test from the
+main process (a ground station's MAV_CMD_DO_MOTOR_TEST, see :mod:`bridge.output.motor_test`)
+takes the place of the safe values: one motor at its test throttle, every other one safe.
+What one tick does is :meth:`OutputLoop.tick` (a test drives it on its own, after
+:meth:`OutputLoop.open`); when ticks happen is the loop's.
 
 It stops with a flush of safe values for ``shutdown_flush_ms`` when asked (the supervisor's
 ``stop_requested``), on SIGTERM, SIGHUP, SIGQUIT or SIGINT, and when the main process dies (its
@@ -37,16 +39,16 @@ from dataclasses import dataclass
 import can
 
 from bridge.autopilot_input import AutopilotInput, InputSetup
-from bridge.busload import IMMEDIATE_MAX_RATE_FACTOR
 from bridge.can_io import Receive, is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import EscDriver, make_driver
-from bridge.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
-from bridge.mixer import SlewLimiter
-from bridge.motor_test import test_frames
+from bridge.output.busload import IMMEDIATE_MAX_RATE_FACTOR
+from bridge.output.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
+from bridge.output.motor_test import test_frames
+from bridge.output.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
+from bridge.output.slew import SlewLimiter
 from bridge.relay import LoopEnd
-from bridge.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 
 log = logging.getLogger(__name__)
 
@@ -90,10 +92,10 @@ def safety_limits(config: BridgeConfig) -> SafetyLimits:
 
 class CommandSelector:
     """Chooses, each tick, what goes on the bus: the newest input's commands (slew-limited),
-    one motor's test throttle, or the safe values, as :func:`~bridge.safety.decide` says.
+    one motor's test throttle, or the safe values, as :func:`~bridge.output.safety.decide` says.
 
     The loop's per-tick safety path, apart from the loop so that a model-based test can drive
-    exactly this code through random sequences of events (``tests/test_safety_model.py``).
+    exactly this code through random sequences of events (``tests/output/test_safety_model.py``).
     """
 
     def __init__(
@@ -179,7 +181,6 @@ class OutputLoop:
         """``watch_parent``: stop when the parent process goes (the loop's own process)."""
         config = setup.config
         self._config = config
-        self._watch_parent = watch_parent
         self._bus_receive = setup.bus_receive
         self._motor_tests = motor_tests
         self._stats = stats
@@ -202,6 +203,20 @@ class OutputLoop:
         self._bus: can.BusABC | None = None
         self._reopen_at_ns = 0
         self._backoff_s = REOPEN_BACKOFF_S[0]
+        # The tick's state: its number, the last one's time, the newest motor test read, when
+        # the shutdown flush ends (0: not stopping), the parent to watch (0: none).
+        self._tick = 0
+        self._last_ns = 0
+        self._test_seq = 0
+        self._stop_at_ns = 0
+        self._parent = os.getppid() if watch_parent else 0
+        self._counters = stats.counters
+        self._lateness = stats.lateness_ring
+        slot = stats.slot
+        self._i_state, self._i_ticks = slot("state"), slot("ticks")
+        self._i_sent, self._i_tick_errors = slot("frames_sent"), slot("tick_errors")
+        self._i_lateness_count, self._i_stop = slot("lateness_count"), slot("stop_requested")
+        self._i_test_motor = slot("motor_test_motor")
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -218,16 +233,8 @@ class OutputLoop:
         Raises:
             BridgeError: the bus or the link could not be opened (state FAILED).
         """
-        stats = self._stats
-        try:
-            self._bus = self._open_bus()
-            self._input.open()
-        except BridgeError:
-            stats["state"] = LoopState.FAILED
-            if self._bus is not None:
-                self._bus.shutdown()
-            raise
-        stats["realtime"] = set_realtime(self._config.output.realtime_priority)
+        self.open()
+        self._stats["realtime"] = set_realtime(self._config.output.realtime_priority)
         # The loop allocates nothing that needs the cycle collector; a collection pass in the
         # middle of a tick would cost milliseconds, so it is frozen out for the loop's life.
         gc.collect()
@@ -237,36 +244,87 @@ class OutputLoop:
             self._loop()
         finally:
             gc.enable()
-            stats["state"] = LoopState.STOPPED
-            self._input.close()
-            if self._relay is not None:
-                self._relay.close()
+            self.close()
+
+    def open(self) -> None:
+        """Open the bus and the autopilot's link (what :meth:`run` does first).
+
+        Raises:
+            BridgeError: the bus or the link could not be opened (state FAILED).
+        """
+        try:
+            self._bus = self._open_bus()
+            self._input.open()
+        except BridgeError:
+            self._stats["state"] = LoopState.FAILED
             if self._bus is not None:
                 self._bus.shutdown()
+            raise
+        self._last_ns = time.monotonic_ns()
+        self._counters[self._i_state] = self._selector.state
+
+    def close(self) -> None:
+        """Close the link, the relay and the bus (state STOPPED)."""
+        self._stats["state"] = LoopState.STOPPED
+        self._input.close()
+        if self._relay is not None:
+            self._relay.close()
+        if self._bus is not None:
+            self._bus.shutdown()
+
+    def read(self, now_ns: int) -> bool:
+        """Take what arrived at ``now_ns`` (the autopilot's link, the main process's relay);
+        True when a new input was acted on."""
+        fresh = self._input.on_readable(now_ns)
+        self._exchange_with_main(now_ns)
+        return fresh
+
+    def tick(self, now_ns: int, due_ns: int) -> bool:
+        """One tick at ``now_ns``, due at ``due_ns``: what the safety decision allows (the
+        newest input's commands, a motor test from the main process, or the safe values) goes
+        on the bus, and the counters follow. False when the shutdown flush is over."""
+        counters = self._counters
+        n = counters[self._i_lateness_count]
+        self._lateness[n % LATENESS_RING] = (now_ns - due_ns) // 1000
+        counters[self._i_lateness_count] = n + 1
+        tick = self._tick
+        parent = self._parent
+        if not self._stop_at_ns and (
+            counters[self._i_stop]
+            or (parent and tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
+        ):
+            self._stop_at_ns = now_ns + self._flush_ns
+        stop_at_ns = self._stop_at_ns
+        self._inputs.stopping = stop_at_ns != 0
+        selector = self._selector
+        fresh_test = self._motor_tests.read_motor_test(self._test_seq)  # one 8-byte load
+        if fresh_test is not None:
+            self._test_seq = fresh_test.seq
+            selector.start_motor_test(fresh_test)
+        frames = selector.select(
+            tick, now_ns, self._input.fractions, (now_ns - self._last_ns) / 1e9
+        )
+        counters[self._i_state] = selector.state
+        counters[self._i_test_motor] = selector.test_index + 1
+        counters[self._i_tick_errors] = selector.faults
+        counters[self._i_sent] += self._send(frames, now_ns)
+        counters[self._i_ticks] += 1
+        self._last_ns = now_ns
+        self._tick = tick + 1
+        return not stop_at_ns or now_ns < stop_at_ns
 
     def _loop(self) -> None:
-        # One flat function on purpose: locals, not attribute look-ups, on every tick.
-        counters = self._stats.counters
-        slot = self._stats.slot
-        state_i, ticks_i, sent_i = slot("state"), slot("ticks"), slot("frames_sent")
-        overruns_i, immediate_i = slot("overruns"), slot("immediate_sends")
-        lateness_count_i, stop_i = slot("lateness_count"), slot("stop_requested")
-        tick_errors_i, test_motor_i = slot("tick_errors"), slot("motor_test_motor")
-        lateness = self._stats.lateness_ring
-        selector, inputs = self._selector, self._inputs
-        motor_tests, input_side, relay = self._motor_tests, self._input, self._relay
+        # When to tick; the tick itself is tick().
+        counters = self._counters
+        overruns_i, immediate_i = self._stats.slot("overruns"), self._stats.slot("immediate_sends")
+        input_side, relay, tick = self._input, self._relay, self.tick
         period_ns = self._period_ns
         min_gap_ns = period_ns // IMMEDIATE_MAX_RATE_FACTOR
         keepalive_ns = period_ns * 3 // 2
         immediate = self._config.output.latency == "immediate"
         monotonic_ns, wait, sleep = time.monotonic_ns, select.select, time.sleep
-        parent = os.getppid() if self._watch_parent else 0
-        test_seq = 0  # the newest motor test read (MAV_CMD_DO_MOTOR_TEST)
-        counters[state_i] = selector.state
-        stop_at_ns = 0
-        tick = 0
         input_tick = False
-        last_ns = next_ns = monotonic_ns()
+        last_ns = next_ns = self._last_ns = monotonic_ns()
         while True:
             delay_ns = next_ns - monotonic_ns()
             if not immediate:
@@ -278,7 +336,7 @@ class OutputLoop:
                     sleep(delay_ns / 1e9)
                 now = monotonic_ns()
                 input_side.on_readable(now)
-                main_gone = not self._exchange_with_main(now)
+                self._exchange_with_main(now)
             elif delay_ns > 0:
                 # Immediate: wait for input, a frame to relay or the tick, whichever comes first.
                 link_fd = input_side.fd
@@ -297,34 +355,9 @@ class OutputLoop:
                     continue
             else:
                 now = monotonic_ns()
-                main_gone = False
-            if main_gone and not stop_at_ns:
-                stop_at_ns = now + self._flush_ns  # its end of the relay is closed: flush now
-            n = counters[lateness_count_i]
-            lateness[n % LATENESS_RING] = (now - next_ns) // 1000
-            counters[lateness_count_i] = n + 1
-
-            if not stop_at_ns and (
-                counters[stop_i]
-                or (parent and tick % PARENT_CHECK_TICKS == 0 and os.getppid() != parent)
-            ):
-                stop_at_ns = now + self._flush_ns
-            inputs.stopping = stop_at_ns != 0
-            fresh_test = motor_tests.read_motor_test(test_seq)  # one 8-byte load if unchanged
-            if fresh_test is not None:
-                test_seq = fresh_test.seq
-                selector.start_motor_test(fresh_test)
-            frames = selector.select(tick, now, input_side.fractions, (now - last_ns) / 1e9)
-            counters[state_i] = selector.state
-            counters[test_motor_i] = selector.test_index + 1
-            counters[tick_errors_i] = selector.faults
-            counters[sent_i] += self._send(frames, now)
-            counters[ticks_i] += 1
-            last_ns = now
-            tick += 1
-
-            if stop_at_ns and now >= stop_at_ns:
+            if not tick(now, next_ns):
                 return
+            last_ns = now
             if input_tick:
                 # Re-phased to the input: the fixed tick becomes a keep-alive that fires only
                 # when the next input is late, so it never races an input arriving on time.
@@ -341,7 +374,8 @@ class OutputLoop:
 
     def _exchange_with_main(self, now_ns: int) -> bool:
         """Write what the main process relayed to the autopilot link and progress the link;
-        False when the main process is gone (its end of the relay closed), once."""
+        False when the main process is gone (its end of the relay closed), once: the
+        shutdown flush starts now."""
         self._input.service(now_ns)
         if not self._relay_open:
             return True
@@ -349,6 +383,8 @@ class OutputLoop:
             self._input.on_relay()
         except EOFError:
             self._relay_open = False
+            if not self._stop_at_ns:
+                self._stop_at_ns = now_ns + self._flush_ns
             return False
         return True
 

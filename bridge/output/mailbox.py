@@ -33,8 +33,8 @@ import zlib
 from dataclasses import dataclass
 from typing import Any
 
-from bridge.mixer import INPUT_NAMES
-from bridge.safety import LoopState
+from bridge.mixing.definition import INPUT_NAMES
+from bridge.output.safety import LoopState
 
 INPUT_VECTOR_LEN = len(INPUT_NAMES)
 
@@ -200,8 +200,8 @@ class Snapshot:
     fractions: tuple[float, ...]
     """The mix of the newest input (empty when invalid)."""
     inputs: tuple[float, ...]
-    """The newest input vector as decoded (``bridge.mixer.INPUT_NAMES`` order, NaN = absent);
-    empty before the first."""
+    """The newest input vector as decoded (``bridge.mixing.definition.INPUT_NAMES`` order,
+    NaN = absent); empty before the first."""
 
 
 class InputSnapshot:

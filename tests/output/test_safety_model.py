@@ -30,10 +30,10 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
 from bridge.escs import ckesc
 from bridge.escs.drivers import CkescDriver
-from bridge.mailbox import MotorTest
-from bridge.mixer import SlewLimiter
-from bridge.output_loop import CommandSelector
-from bridge.safety import ControlInputs, SafetyLimits
+from bridge.output.mailbox import MotorTest
+from bridge.output.output_loop import CommandSelector
+from bridge.output.safety import ControlInputs, SafetyLimits
+from bridge.output.slew import SlewLimiter
 
 N = 4
 MS = 1_000_000

@@ -4,7 +4,7 @@ Pure: the loop passes in what it knows (the newest mixed input and when the auto
 it, the autopilot's arming state and when it was heard, a motor test, a stop request) and the
 time; :func:`decide` answers with a :class:`LoopState`. Everything but ``RUNNING`` and
 ``MOTOR_TEST`` means the safe values; ``MOTOR_TEST`` means one motor at its test throttle and
-every other one safe. A hypothesis state machine (``tests/test_safety_model.py``) drives this
+every other one safe. A hypothesis state machine (``tests/output/test_safety_model.py``) drives this
 function and the real loop through random event sequences against a model of these rules.
 
 The rules, first match wins:

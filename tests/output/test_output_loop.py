@@ -1,0 +1,304 @@
+"""The control loop on python-can's virtual bus, fed by a real pymavlink autopilot on loopback
+UDP: its tick driven one at a time (what each safety case puts on the bus), the whole loop in a
+thread, and its per-tick selector on its own (a fault in a tick means safe values)."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import can
+import pytest
+from conftest import Autopilot, free_port
+
+from bridge.autopilot_input import InputSetup
+from bridge.config import build_config
+from bridge.escs import ckesc
+from bridge.escs.drivers import CkescDriver
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.output_loop import CommandSelector, LoopSetup, OutputLoop
+from bridge.output.safety import ControlInputs, LoopState, SafetyLimits
+from bridge.output.slew import SlewLimiter
+from bridge.preflight import plan
+from bridge.relay import relay_pair
+
+MS = 1_000_000
+PWM = [1250, 1500, 1750, 2000]
+THROTTLES = (500, 1000, 1500, 2000)  # PWM through passthrough-4 to CKESC 12b
+SAFE = (0, 0, 0, 0)
+INPUT_TIMEOUT_MS = 400  # the default 100 ms, widened for a loaded test machine
+
+
+def _throttles(observer: can.BusABC, count: int) -> list[tuple[int, ...]]:
+    seen: list[tuple[int, ...]] = []
+    while len(seen) < count and (msg := observer.recv(1.0)) is not None:
+        frame = ckesc.decode(msg)
+        assert frame is not None and isinstance(frame.message, ckesc.RawCommand12b)
+        seen.append(frame.message.throttles)
+    return seen
+
+
+@pytest.fixture
+def loop_on_virtual_bus(
+    request: pytest.FixtureRequest,
+) -> Iterator[tuple[int, LoopStats]]:
+    channel = f"loop-{request.node.name}"
+    port = free_port()
+    raw = {
+        "mavlink": {"url": f"udpin:127.0.0.1:{port}"},
+        "can": {"interface": "virtual", "channel": channel},
+        "output": {"realtime_priority": 0, "loop": "thread"},
+        "zenoh": {"enabled": False},
+    }
+    checked = plan(build_config(raw, "test"))
+    stats = LoopStats()
+    n = len(checked.mixer.outputs)
+    loop_end, main_end = relay_pair()
+    setup = LoopSetup(checked.config, InputSetup(checked.mixer, checked.valid_range, None))
+    loop = OutputLoop(setup, MotorTestBlock(n), InputSnapshot(n), stats, loop_end)
+    thread = threading.Thread(target=loop.run)
+    thread.start()
+    yield port, stats
+    loop.request_stop()
+    thread.join(5)
+    main_end.close()
+    assert not thread.is_alive()
+    assert stats["state"] == LoopState.STOPPED
+
+
+def test_the_loop_reads_the_autopilot_itself_and_sends_the_mix(
+    loop_on_virtual_bus: tuple[int, LoopStats], request: pytest.FixtureRequest
+) -> None:
+    port, stats = loop_on_virtual_bus
+    observer = can.Bus(interface="virtual", channel=f"loop-{request.node.name}")
+    autopilot = Autopilot(port)
+    try:
+        assert set(_throttles(observer, 5)) == {(0, 0, 0, 0)}  # no input yet
+        autopilot.pwm = [1250, 1500, 1750, 2000]
+        autopilot.armed = True
+        autopilot.start_stream(100)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and stats["state"] != LoopState.RUNNING:
+            time.sleep(0.01)
+        assert stats["state"] == LoopState.RUNNING
+        while observer.recv(0) is not None:
+            pass  # what was queued before
+        assert set(_throttles(observer, 20)[-10:]) == {(500, 1000, 1500, 2000)}
+        assert stats["input_outputs"] > 0 and stats["input_heartbeats"] > 0
+        autopilot.pause_outputs()
+        time.sleep(0.2)
+        assert stats["state"] == LoopState.STALE
+        while observer.recv(0) is not None:
+            pass  # what was queued before
+        assert set(_throttles(observer, 10)[-5:]) == {(0, 0, 0, 0)}
+    finally:
+        autopilot.close()
+        observer.shutdown()
+
+
+# -- one tick at a time --------------------------------------------------------------------
+
+
+@dataclass
+class Rig:
+    """An output loop opened on a virtual bus (not running: the test ticks it), its real
+    mailbox blocks and relay, an autopilot on its link and an observer on its bus."""
+
+    loop: OutputLoop
+    stats: LoopStats
+    motor_tests: MotorTestBlock
+    main_end: socket.socket
+    autopilot: Autopilot
+    observer: can.BusABC
+    now_ns: int = 0
+    running: bool = True
+
+    def tick(self, ahead_ms: float = 0.0) -> tuple[int, ...]:
+        """Read what arrived, tick once (``ahead_ms`` after now), and return the throttles the
+        tick put on the bus."""
+        now = max(time.monotonic_ns() + round(ahead_ms * MS), self.now_ns + 1)
+        self.now_ns = now
+        self.loop.read(now)
+        self.running = self.loop.tick(now, now)
+        (throttles,) = _throttles(self.observer, 1)
+        assert self.observer.recv(0) is None  # one frame a tick: four motors, one 12b group
+        return throttles
+
+    def state(self) -> LoopState:
+        return LoopState(self.stats["state"])
+
+    def outputs(self, pwm: list[int], count: int = 4, interval_s: float = 0.01) -> None:
+        """``count`` SERVO_OUTPUT_RAW of ``pwm``, ``interval_s`` apart (by the autopilot's
+        clock and on the wire)."""
+        for i in range(count):
+            if i:
+                time.sleep(interval_s)
+            self.autopilot.servo_output_raw(pwm)
+
+    def heartbeat(self, armed: bool) -> None:
+        self.autopilot.armed = armed
+        self.autopilot.heartbeat()
+
+
+@pytest.fixture
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    channel = f"tick-{request.node.name}"
+    port = free_port()
+    raw = {
+        "mavlink": {"url": f"udpin:127.0.0.1:{port}"},
+        "can": {"interface": "virtual", "channel": channel},
+        "output": {"realtime_priority": 0, "loop": "thread", "input_timeout_ms": INPUT_TIMEOUT_MS},
+        "zenoh": {"enabled": False},
+    }
+    checked = plan(build_config(raw, "test"))
+    n = len(checked.mixer.outputs)
+    stats, motor_tests = LoopStats(), MotorTestBlock(n)
+    loop_end, main_end = relay_pair()
+    setup = LoopSetup(checked.config, InputSetup(checked.mixer, checked.valid_range, None))
+    loop = OutputLoop(setup, motor_tests, InputSnapshot(n), stats, loop_end)
+    observer = can.Bus(interface="virtual", channel=channel)
+    loop.open()
+    autopilot = Autopilot(port)
+    try:
+        yield Rig(loop, stats, motor_tests, main_end, autopilot, observer)
+    finally:
+        autopilot.close()
+        loop.close()
+        observer.shutdown()
+        main_end.close()
+    assert stats["state"] == LoopState.STOPPED
+
+
+def test_tick_no_input_then_disarmed_then_armed(rig: Rig) -> None:
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.NO_INPUT
+    rig.heartbeat(armed=False)
+    rig.outputs(PWM)
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.DISARMED
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    assert rig.state() == LoopState.RUNNING
+    rig.heartbeat(armed=False)  # the next tick after the HEARTBEAT
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.DISARMED
+    assert rig.stats["ticks"] == rig.stats["frames_sent"] == 4
+
+
+def test_tick_stale_input_stops_the_motors_until_a_fresh_one(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    time.sleep(INPUT_TIMEOUT_MS / 1000 + 0.05)  # produced longer ago than the timeout
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.STALE
+    rig.outputs(PWM, count=1)  # in flight: one fresh input runs again
+    assert rig.tick() == THROTTLES
+    assert rig.state() == LoopState.RUNNING
+
+
+def test_tick_a_slow_stream_never_starts_the_motors(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    slow_s = INPUT_TIMEOUT_MS / 1000 * 0.6  # fewer than two inputs per timeout
+    for _ in range(5):
+        rig.outputs(PWM, count=1)
+        assert rig.tick() == SAFE
+        assert rig.state() == LoopState.SLOW_STREAM
+        time.sleep(slow_s)
+    rig.outputs(PWM, count=12)  # fast enough now (the mean over about the last 8)
+    assert rig.tick() == THROTTLES
+    assert rig.state() == LoopState.RUNNING
+
+
+def test_tick_heartbeat_lost_stops_the_motors(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    assert rig.tick(ahead_ms=3100) == SAFE  # arming_timeout_ms (3000) without a HEARTBEAT
+    assert rig.state() == LoopState.HEARTBEAT_LOST
+
+
+def test_tick_invalid_input_stops_the_motors(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    rig.outputs([2500, 1500, 1750, 2000], count=1)  # ch1 above valid_range (800..2200 µs)
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.INVALID
+    assert rig.stats["input_invalid"] == 1
+    rig.outputs(PWM, count=1)
+    assert rig.tick() == THROTTLES
+
+
+def test_tick_motor_test_spins_one_motor_while_disarmed_and_arming_ends_it(rig: Rig) -> None:
+    rig.heartbeat(armed=False)
+    assert rig.tick() == SAFE
+    rig.motor_tests.write_motor_test(1, 1, 0.25, time.monotonic_ns(), 5000 * MS, 5000 * MS)
+    assert rig.tick() == (0, 500, 0, 0)  # motor 2 at 25 % of throttle 2000, the others safe
+    assert rig.state() == LoopState.MOTOR_TEST
+    assert rig.stats["motor_test_motor"] == 2
+    rig.heartbeat(armed=True)  # arming ends the test for good
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.NO_INPUT
+    assert rig.stats["motor_test_motor"] == 0
+    rig.heartbeat(armed=False)
+    assert rig.tick() == SAFE
+    assert rig.state() == LoopState.NO_INPUT
+
+
+def test_tick_stop_flushes_safe_values_then_ends(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    rig.loop.request_stop()
+    assert rig.tick() == SAFE
+    assert (rig.state(), rig.running) == (LoopState.STOPPING, True)
+    rig.outputs(PWM, count=1)  # inputs no longer count
+    assert rig.tick(ahead_ms=100) == SAFE
+    assert rig.running
+    assert rig.tick(ahead_ms=250) == SAFE  # shutdown_flush_ms (200) after the stop: the last
+    assert not rig.running
+
+
+def test_tick_main_process_gone_flushes_safe_values_then_ends(rig: Rig) -> None:
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    rig.main_end.close()  # its end of the relay: what a dead main process leaves
+    assert rig.tick() == SAFE
+    assert (rig.state(), rig.running) == (LoopState.STOPPING, True)
+    assert rig.tick(ahead_ms=250) == SAFE
+    assert not rig.running
+
+
+# -- the selector alone ----------------------------------------------------------------------
+
+
+def test_a_fault_in_a_tick_sends_safe_values_and_the_next_tick_runs_again() -> None:
+    # A stream at 200 Hz for long enough to arm on.
+    inputs = ControlInputs(
+        have_input=True, input_valid=True, armed=True, input_interval_ns=5 * MS, input_intervals=3
+    )
+    limits = SafetyLimits(True, 100 * MS, 3000 * MS)
+    selector = CommandSelector(
+        CkescDriver("12b", [1, 2, 3, 4]), SlewLimiter([0.0] * 4, [0.0] * 4), limits, inputs, 4
+    )
+    now = 10_000 * MS
+    inputs.input_produced_ns = inputs.armed_heard_ns = now
+    good = [0.5, 0.5, 0.5, 0.5]
+
+    def throttles(fractions: list[float]) -> tuple[int, ...]:
+        frames = selector.select(0, now, fractions, 0.0025)
+        decoded = ckesc.decode(frames[0])
+        assert decoded is not None and isinstance(decoded.message, ckesc.RawCommand12b)
+        return decoded.message.throttles
+
+    assert throttles(good) == (1000, 1000, 1000, 1000)
+    # A vector the slew limiter cannot take (one output short): safe values, counted.
+    assert throttles([0.5, 0.5, 0.5]) == (0, 0, 0, 0)
+    assert selector.faults == 1 and selector.state == LoopState.RUNNING
+    assert throttles(good) == (1000, 1000, 1000, 1000)
