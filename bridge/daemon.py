@@ -40,7 +40,7 @@ from bridge.errors import BridgeError, LinkError
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.fanout import Fanout
 from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
-from bridge.mavlink_in import MavlinkLink
+from bridge.mavlink.link import MavlinkLink
 from bridge.mixer import INPUT_NAMES
 from bridge.motor_test import (
     Decision,

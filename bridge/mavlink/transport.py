@@ -3,7 +3,7 @@
 The real-time control loop is one thread that polls the autopilot's link itself, decodes the
 motor outputs, mixes and sends CAN frames at a fixed rate. It must never block: not on a read,
 a write, a TCP connect, a serial port that vanished, or a reconnect. pymavlink's transports
-(which :mod:`bridge.mavlink_in` uses from its own threads) block in several of those places, so
+(which :mod:`bridge.mavlink.link` uses from its own threads) block in several of those places, so
 this module opens the same five kinds of connection with plain non-blocking file descriptors and
 leaves framing to the caller: bytes in, bytes out, nothing about MAVLink.
 
@@ -42,7 +42,7 @@ read time. A stream read is stamped with the read time: a byte stream has no arr
 
 Link trouble never raises once open: a TCP or serial stream that ends or fails is closed and
 reopened with jittered, capped exponential backoff (0.1 s, doubling, 5 s cap, as
-:mod:`bridge.mavlink_in`), and counted in :class:`TransportStats`. Each change of state (lost,
+:mod:`bridge.mavlink.link`), and counted in :class:`TransportStats`. Each change of state (lost,
 connected, a different reason for failing) is logged once through this module's logger; the
 retries themselves are not. The logging happens on the calling thread, so the real-time
 process should give its loggers a handler that never blocks (``logging.handlers.QueueHandler``

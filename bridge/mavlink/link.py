@@ -1,9 +1,9 @@
 """The MAVLink edge: the autopilot's motor outputs and arming state in; the bridge's HEARTBEAT,
 STATUSTEXT and ESC telemetry out, to the autopilot and to any extra outputs (a GCS).
 
-The only module besides the dialect and :mod:`bridge.mavlink_out` that touches pymavlink. A
-:class:`MavlinkLink` opens one connection to the autopilot plus one per ``[mavlink] outputs``
-entry, and runs named daemon threads:
+The only module besides the dialect and :mod:`bridge.mavlink.telemetry_out` that touches
+pymavlink. A :class:`MavlinkLink` opens one connection to the autopilot plus one per
+``[mavlink] outputs`` entry, and runs named daemon threads:
 
 * one reader per connection. On the autopilot's connection it decodes the configured output
   message into a :data:`INPUT_VECTOR_LEN`-vector (``ch1..ch32, roll, pitch, yaw, thrust``, the

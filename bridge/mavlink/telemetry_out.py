@@ -51,7 +51,7 @@ from types import TracebackType
 from typing import Any, Final, Literal
 
 from bridge.config import MavlinkConfig
-from bridge.mavlink_in import COMMAND_ORIGIN, MavlinkLink
+from bridge.mavlink.link import COMMAND_ORIGIN, MavlinkLink
 from bridge.telemetry.state import EscSnapshot, EscTable
 
 __all__ = [

@@ -27,7 +27,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError, LinkError
-from bridge.mavlink_in import (
+from bridge.mavlink.link import (
     ACCEPTED_URL_FORMS,
     DEFAULT_BAUD,
     INPUT_VECTOR_LEN,

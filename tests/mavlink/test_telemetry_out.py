@@ -26,8 +26,8 @@ from pymavlink import mavutil
 from bridge.config import MavlinkConfig
 from bridge.escs import ckesc, decode, ft
 from bridge.mavlink import load_dialect
-from bridge.mavlink_in import MavlinkLink
-from bridge.mavlink_out import MavlinkTelemetry
+from bridge.mavlink.link import MavlinkLink
+from bridge.mavlink.telemetry_out import MavlinkTelemetry
 from bridge.telemetry.state import EscTable
 
 DIALECT = load_dialect()
@@ -236,7 +236,7 @@ def make_bridge() -> Iterator[MakeBridge]:
         settings: dict[str, Any] = {"url": gcs.url, "stream_rate_hz": 0.0} | config
         if "autopilot_messages" not in settings:
             # The GCS plays the autopilot's link here: give it the output rates (the per-link
-            # sets are tested in test_mavlink_link_sets.py).
+            # sets are tested in test_link_sets.py).
             settings["autopilot_messages"] = MavlinkConfig(**settings).output_rates("")
         mavlink = MavlinkConfig(**settings)
         link = MavlinkLink(mavlink, NullSink())
