@@ -39,8 +39,8 @@ from bridge.can_io import check_interface
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
-from bridge.mavlink.link import Endpoint, check_endpoints
-from bridge.mavlink.telemetry_out import describe_sets
+from bridge.mavlink.endpoints import Endpoint, check_endpoints
+from bridge.mavlink.esc_messages import describe_sets
 from bridge.mixer import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition, load_mixer
 from bridge.zenoh_out import session_config
 

@@ -23,7 +23,8 @@ One :class:`AutopilotTransport` per link, made by :func:`open_transport`, used b
         transport.send(frame)                # False: dropped, never blocked
     transport.close()
 
-Kinds (the URL forms of :data:`ACCEPTED_URL_FORMS`, parsed by :func:`parse_url`):
+Kinds (the URL forms of :data:`~bridge.mavlink.endpoints.ACCEPTED_URL_FORMS`, parsed by
+:func:`~bridge.mavlink.endpoints.parse_url`):
 
 * ``udpin:HOST:PORT`` binds there and replies to whoever sent the latest datagram, as
   pymavlink does; until a datagram arrives there is nobody to send to.
@@ -69,7 +70,6 @@ import logging
 import os
 import queue
 import random
-import re
 import select
 import socket
 import struct
@@ -80,39 +80,24 @@ from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Final, Literal, cast
+from typing import Final, cast
 
-from bridge.errors import ConfigError, LinkError
+from bridge.errors import LinkError
+from bridge.mavlink.endpoints import Endpoint
 
 __all__ = [
-    "ACCEPTED_URL_FORMS",
-    "DEFAULT_BAUD",
     "PENDING_LIMIT_BYTES",
     "AutopilotTransport",
-    "Endpoint",
     "SerialTransport",
     "TcpClientTransport",
     "TcpServerTransport",
-    "Transport",
     "TransportStats",
     "UdpInTransport",
     "UdpOutTransport",
     "open_transport",
-    "parse_url",
 ]
 
 log = logging.getLogger(__name__)
-
-Transport = Literal["udpin", "udpout", "tcp", "tcpin", "serial"]
-
-ACCEPTED_URL_FORMS: Final = (
-    "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, "
-    "serial:DEVICE[:BAUD] or a device path DEVICE[:BAUD] (e.g. serial:/dev/ttyAMA0:921600)"
-)
-DEFAULT_BAUD: Final = 115_200  # pymavlink's default; USB CDC links ignore it
-_NETWORK_URL: Final = re.compile(r"(udpin|udpout|tcp|tcpin):([^:\s]+):([0-9]{1,5})")
-# The device ends at the last ":digits", if any: /dev/serial/by-path names contain colons.
-_SERIAL_URL: Final = re.compile(r"(?:serial:)?(/\S*?)(?::([0-9]+))?")
 
 PENDING_LIMIT_BYTES: Final = 4096
 """Default bound of a stream's pending buffer: about 15 full-size MAVLink 2 frames (280 bytes),
@@ -153,56 +138,6 @@ _SERIAL_TRANSIENT: Final = frozenset(
         errno.EAGAIN,
     }
 )
-
-
-@dataclass(frozen=True)
-class Endpoint:
-    """A validated connection string."""
-
-    url: str
-    """As configured, for messages."""
-    kind: Transport
-    address: str
-    """``HOST:PORT``, or the serial device path."""
-    baud: int = DEFAULT_BAUD
-    """Serial only, in bit/s."""
-
-    @property
-    def is_stream(self) -> bool:
-        """A byte stream that can end (TCP, serial) rather than datagrams."""
-        return self.kind in ("tcp", "tcpin", "serial")
-
-
-def parse_url(url: str, key: str = "url") -> Endpoint:
-    """Check a connection string and split it into what a transport opens.
-
-    Only the forms in :data:`ACCEPTED_URL_FORMS` are accepted: pymavlink would also take a file
-    name (and replay it as a log, or run it if it looks like a program), which must never
-    happen by accident on a vehicle. ``key`` is the ``[mavlink]`` key the URL came from, for
-    the message (``url`` or ``outputs``).
-
-    Raises:
-        ConfigError: naming the key, the URL and the accepted forms.
-    """
-    where = f"[mavlink] {key} {url!r}"
-    network = _NETWORK_URL.fullmatch(url)
-    if network is not None:
-        kind, host, port = network.groups()
-        if not 1 <= int(port) <= 65535:
-            raise ConfigError(
-                f"{where}: port {port} is not 1..65535; expected one of {ACCEPTED_URL_FORMS}"
-            )
-        return Endpoint(url, cast(Transport, kind), f"{host}:{int(port)}")
-    serial = _SERIAL_URL.fullmatch(url)
-    if serial is not None:
-        device, baud = serial.groups()
-        if baud is not None and int(baud) == 0:
-            raise ConfigError(f"{where}: baud rate 0; expected one of {ACCEPTED_URL_FORMS}")
-        return Endpoint(url, "serial", device, int(baud) if baud else DEFAULT_BAUD)
-    raise ConfigError(
-        f"{where} is not a connection string esc-bridge accepts; "
-        f"expected one of {ACCEPTED_URL_FORMS}"
-    )
 
 
 @dataclass
@@ -1060,10 +995,11 @@ def open_transport(
     wait_for_link: bool = True,
     pending_limit_bytes: int = PENDING_LIMIT_BYTES,
 ) -> AutopilotTransport:
-    """Open the transport for ``endpoint`` (from :func:`parse_url`). Call it before the loop
-    starts: it is the one call that may wait, to resolve a host name (once; the loop never
-    does), to open a serial device the first time and start its helper thread, and, without
-    ``wait_for_link``, for a TCP connect. No method of the transport waits after it.
+    """Open the transport for ``endpoint`` (from :func:`~bridge.mavlink.endpoints.parse_url`).
+    Call it before the loop starts: it is the one call that may wait, to resolve a host name
+    (once; the loop never does), to open a serial device the first time and start its helper
+    thread, and, without ``wait_for_link``, for a TCP connect. No method of the transport waits
+    after it.
 
     ``wait_for_link`` True (the default, for the real-time loop): a TCP server that is not up
     yet, or a serial device that does not exist yet (a USB adapter not enumerated at boot, a

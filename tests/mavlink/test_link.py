@@ -27,14 +27,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError, LinkError
-from bridge.mavlink.link import (
-    ACCEPTED_URL_FORMS,
-    DEFAULT_BAUD,
-    INPUT_VECTOR_LEN,
-    Endpoint,
-    MavlinkLink,
-    parse_url,
-)
+from bridge.mavlink.endpoints import ACCEPTED_URL_FORMS, DEFAULT_BAUD, Endpoint, parse_url
+from bridge.mavlink.link import INPUT_VECTOR_LEN, MavlinkLink
 from bridge.mixer import INPUT_NAMES
 
 KEY = bytes(range(32))

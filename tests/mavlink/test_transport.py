@@ -29,6 +29,7 @@ from typing import TypeVar
 import pytest
 
 from bridge.errors import LinkError
+from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.transport import (
     PENDING_LIMIT_BYTES,
     SerialTransport,
@@ -37,7 +38,6 @@ from bridge.mavlink.transport import (
     UdpInTransport,
     UdpOutTransport,
     open_transport,
-    parse_url,
 )
 
 T = TypeVar("T")
