@@ -38,7 +38,8 @@ from bridge.mavlink.actuators import (
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
-from bridge.mavlink.transport import AutopilotTransport, open_transport
+from bridge.mavlink.transport import open_transport
+from bridge.mavlink.transport.base import AutopilotTransport
 from bridge.mixer import AXIS_VALID_RANGE, PWM_RANGE_US, AxisChannels, Mixer, MixerDefinition
 from bridge.relay import LoopEnd
 from bridge.safety import ControlInputs

@@ -30,15 +30,11 @@ import pytest
 
 from bridge.errors import LinkError
 from bridge.mavlink.endpoints import parse_url
-from bridge.mavlink.transport import (
-    PENDING_LIMIT_BYTES,
-    SerialTransport,
-    TcpClientTransport,
-    TcpServerTransport,
-    UdpInTransport,
-    UdpOutTransport,
-    open_transport,
-)
+from bridge.mavlink.transport import open_transport
+from bridge.mavlink.transport.base import PENDING_LIMIT_BYTES
+from bridge.mavlink.transport.serial import SerialTransport
+from bridge.mavlink.transport.tcp import TcpClientTransport, TcpServerTransport
+from bridge.mavlink.transport.udp import UdpInTransport, UdpOutTransport
 
 T = TypeVar("T")
 BLOCKED_NS = 5_000_000
