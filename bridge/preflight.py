@@ -71,7 +71,7 @@ SOURCE_VALID_RANGES: dict[str, tuple[float, float]] = {
     "actuator_control_target": (-1.5, 1.5),
 }
 
-# Channels each source fills (bridge.mavlink.link's decoders): SERVO_OUTPUT_RAW ports 0 and 1 of
+# Channels each source fills (bridge.mavlink.actuators): SERVO_OUTPUT_RAW ports 0 and 1 of
 # 16 and ACTUATOR_OUTPUT_STATUS's 32 actuators fill ch1..ch32, HIL_ACTUATOR_CONTROLS ch1..ch16;
 # ACTUATOR_CONTROL_TARGET fills no channel but roll, pitch, yaw and thrust.
 SOURCE_CHANNELS: dict[str, int] = {

@@ -9,8 +9,8 @@ frame without the extensions read the missing fields as 0. tests/mavlink/test_ac
 checks every layout against pymavlink's dialect.
 
 The input vector has :data:`INPUT_VECTOR_LEN` floats in the order of
-``bridge.mixer.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means absent. The
-semantics are those of :class:`bridge.mavlink.link.MavlinkLink`'s decoders:
+``bridge.mixer.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means absent.
+:class:`bridge.mavlink.link.MavlinkLink` decodes with these same decoders:
 
 ======================================  ===================================================
  source (``[mavlink] source``)           message and rule

@@ -1,13 +1,12 @@
 """The MAVLink edge: the autopilot's motor outputs and arming state in; the bridge's HEARTBEAT,
 STATUSTEXT and ESC telemetry out, to the autopilot and to any extra outputs (a GCS).
 
-With its helpers (:mod:`~bridge.mavlink.connection`, :mod:`~bridge.mavlink.signing`) and
-:mod:`bridge.mavlink.telemetry_out`, the only code besides the dialect that touches pymavlink.
-A :class:`MavlinkLink` opens one connection to the autopilot plus one per
-``[mavlink] outputs`` entry, and runs named daemon threads:
+The main process's MAVLink, on pymavlink's codec (the dialect) and, through
+:mod:`~bridge.mavlink.connection`, its transports. A :class:`MavlinkLink` opens one connection
+to the autopilot plus one per ``[mavlink] outputs`` entry, and runs named daemon threads:
 
 * one reader per connection. On the autopilot's connection it decodes the configured output
-  message (:mod:`bridge.mavlink.actuators`) into a :data:`INPUT_VECTOR_LEN`-vector
+  message (:mod:`bridge.mavlink.actuators`) into an ``INPUT_VECTOR_LEN``-vector
   (``ch1..ch32, roll, pitch, yaw, thrust``, the order of ``bridge.mixer.INPUT_NAMES``; NaN =
   absent) and hands it, with the arming state from the autopilot's HEARTBEAT, to an
   :class:`InputSink`. On every connection it passes COMMAND_LONGs addressed to the bridge to
@@ -77,14 +76,10 @@ from bridge.mavlink.heartbeat import Heartbeat
 from bridge.mavlink.signing import SIGNATURE_REJECTED, codec_class, new_parser, setup_signing
 from bridge.mavlink.stats import LinkStats, OutputStats, log_sparsely
 from bridge.mavlink.tlog import Tlog
-from bridge.mixer import INPUT_NAMES
 
-__all__ = ["INPUT_VECTOR_LEN", "InputSink", "MavlinkLink"]
+__all__ = ["InputSink", "MavlinkLink"]
 
 log = logging.getLogger(__name__)
-
-INPUT_VECTOR_LEN: Final = len(INPUT_NAMES)
-"""36: ``ch1..ch32``, then ``roll, pitch, yaw, thrust`` (the order of ``INPUT_NAMES``)."""
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
 _JOIN_TIMEOUT_S: Final = 2.0
@@ -97,8 +92,9 @@ class InputSink(Protocol):
     """Receives what the autopilot commands. Called on the reader thread: keep it short."""
 
     def on_actuators(self, values: list[float], time_ns: int) -> None:
-        """A fresh input vector of :data:`INPUT_VECTOR_LEN` floats (NaN = absent), stamped
-        with ``time.monotonic_ns()`` at receipt. The list is the sink's to keep."""
+        """A fresh input vector of :data:`~bridge.mavlink.actuators.INPUT_VECTOR_LEN` floats
+        (NaN = absent), stamped with ``time.monotonic_ns()`` at receipt. The list is the sink's
+        to keep."""
 
     def on_armed(self, armed: bool, time_ns: int) -> None:
         """The autopilot's arming state, on each of its HEARTBEATs (and, with the

@@ -22,7 +22,8 @@ from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig
-from bridge.mavlink.link import INPUT_VECTOR_LEN, MavlinkLink
+from bridge.mavlink.actuators import INPUT_VECTOR_LEN
+from bridge.mavlink.link import MavlinkLink
 from bridge.mixer import INPUT_NAMES
 
 KEY = bytes(range(32))
