@@ -1,19 +1,38 @@
-"""The ESC telemetry encoders and message sets, as pure functions: snapshots in, messages out.
-
-Each message is packed with the project's dialect and decoded again, so what is checked is what
-goes on the wire. The sender around them is tested end to end in test_telemetry_out.py.
+"""The ESC telemetry encoders and message sets: first as pure functions (snapshots in, messages
+out, packed with the project's dialect and parsed back), then every field of every batch end to
+end, from real CAN frames through a real :class:`EscTable`, link and sender to a ground station
+on 127.0.0.1 (the helpers in telemetrypeer.py). The sender's own behaviour (rates, commands,
+outputs) is tested in test_telemetry_out.py.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import replace
 from typing import Any
 
 import pytest
+import telemetrypeer
+from telemetrypeer import (
+    DIALECT,
+    INT16_MAX,
+    OUR_ID,
+    TIMEOUT_S,
+    MakeBridge,
+    check_esc_info,
+    check_esc_status,
+    check_esc_telemetry,
+    feed,
+    first_round,
+    ingest,
+    make_table,
+    populate,
+    telemetry_round,
+)
 
 from bridge.config import MavlinkConfig
-from bridge.mavlink import load_dialect
+from bridge.escs import ckesc
 from bridge.mavlink.esc_messages import (
     AUTOPILOT_SETS,
     OTHER_AUTOPILOT_SET,
@@ -26,8 +45,7 @@ from bridge.mavlink.esc_messages import (
 )
 from bridge.telemetry.state import EscSnapshot
 
-DIALECT = load_dialect()
-INT16_MAX = 32_767
+make_bridge = telemetrypeer.make_bridge
 
 
 def snapshot(motor: int, **fields: Any) -> EscSnapshot:
@@ -127,3 +145,109 @@ def test_describe_sets_names_each_connection() -> None:
     assert text.startswith("MAVLink ESC telemetry for 4 ESCs: autopilot link by its HEARTBEAT")
     assert "udpout:127.0.0.1:14551 ESC_STATUS" in text
     assert OTHER_AUTOPILOT_SET["esc_telemetry"] > 0
+
+
+# -- every field, end to end ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [4, 6, 8, 20])  # 6: the last batch is padded
+def test_every_field_of_every_batch(make_bridge: MakeBridge, n: int) -> None:
+    table = make_table(n)
+    expected = populate(table, n)
+    before_us = time.time_ns() // 1000
+    bridge = make_bridge(table, esc_status_hz=20.0, esc_info_hz=20.0, esc_telemetry_hz=20.0)
+    batches = math.ceil(n / 4)
+
+    status = first_round(bridge.gcs, "ESC_STATUS", batches)
+    info = first_round(bridge.gcs, "ESC_INFO", batches)
+    telemetry = telemetry_round(bridge.gcs, min(batches, 8))
+    after_us = time.time_ns() // 1000
+
+    assert any(e.rpm is not None and e.rpm < 0 for e in expected)  # an FT ESC in reverse
+    for msg in status.values():
+        check_esc_status(msg, expected, (before_us, after_us))
+    for msg in info.values():
+        check_esc_info(msg, expected, (before_us, after_us))
+        assert (msg.get_srcSystem(), msg.get_srcComponent()) == OUR_ID
+    for batch, msg in telemetry.items():
+        check_esc_telemetry(msg, batch, expected)
+    # The counter counts ESC_INFO rounds: every batch of a round carries the same, +1 per round.
+    assert {m.counter for m in info.values()} == {1}
+    bridge.gcs.wait_for("ESC_INFO", lambda m: m.index == 0 and m.counter == 3)
+    rounds = [m.counter for _, m in bridge.gcs.of("ESC_INFO") if m.index == 0][:3]
+    assert rounds == [1, 2, 3]
+
+
+def test_esc_telemetry_stops_at_32_escs(make_bridge: MakeBridge) -> None:
+    table = make_table(37)
+    expected = populate(table, 37)
+    bridge = make_bridge(table, esc_status_hz=20.0, esc_info_hz=0.0, esc_telemetry_hz=20.0)
+
+    telemetry = telemetry_round(bridge.gcs, 8)
+    status = first_round(bridge.gcs, "ESC_STATUS", 10)  # 37 ESCs: batches 0..36
+
+    check_esc_telemetry(telemetry[7], 7, expected)
+    check_esc_status(status[36], expected, (0, 2**64 - 1))
+    assert not bridge.gcs.of("ESC_INFO")  # 0 Hz is off
+
+
+def test_esc_goes_offline_after_the_timeout_and_comes_back(make_bridge: MakeBridge) -> None:
+    table = make_table(2, timeout_ms=150)
+    now = time.monotonic_ns()
+    first = feed(table, 0, now)  # ckesc_full
+    feed(table, 1, now)
+    bridge = make_bridge(table, esc_status_hz=40.0, esc_info_hz=40.0, esc_telemetry_hz=40.0)
+    gcs = bridge.gcs
+
+    def info_bits(since: int) -> Any:
+        return gcs.wait_for("ESC_INFO", lambda m: True, since)
+
+    assert info_bits(0).info == 0b11
+    # Keep ESC 2 talking while ESC 1 falls silent.
+    deadline = time.monotonic() + TIMEOUT_S
+    while (msg := gcs.of("ESC_INFO")[-1][1]).info != 0b10:
+        assert time.monotonic() < deadline, "ESC 1 never went offline"
+        ingest(
+            table,
+            ckesc.encode(ckesc.CkescFrame(31, 2, None, 0, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+            now,
+        )
+        now = time.monotonic_ns()
+        time.sleep(0.02)
+    assert msg.temperature[0] == INT16_MAX  # offline: unknown, not its last value
+    assert msg.error_count[0] == 0
+    since = gcs.count()
+    ingest(
+        table,
+        ckesc.encode(ckesc.CkescFrame(31, 2, None, 0, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+        now,
+    )
+    offline_status = gcs.wait_for("ESC_STATUS", since=since)
+    assert offline_status.rpm[0] == 0
+    assert offline_status.voltage[0] == 0.0
+    assert offline_status.current[0] == 0.0
+    assert offline_status.rpm[1] == 7
+    offline_telemetry = gcs.wait_for("ESC_TELEMETRY_1_TO_4", since=since)
+    assert offline_telemetry.rpm[0] == 0
+    assert offline_telemetry.temperature[0] == 0
+    assert offline_telemetry.voltage[0] == 0
+    assert offline_telemetry.count[0] == first.frames  # counters are kept
+    assert offline_telemetry.totalcurrent[0] == 1
+
+    # ESC 1 speaks again: online, with its values.
+    now = time.monotonic_ns()
+    ingest(
+        table,
+        ckesc.encode(ckesc.CkescFrame(31, 1, None, 1, ckesc.Msg1(4321, 0, ckesc.Msg1Status(0)))),
+        now,
+    )
+    ingest(
+        table,
+        ckesc.encode(ckesc.CkescFrame(31, 2, None, 1, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+        now,
+    )
+    since = gcs.count()
+    back = gcs.wait_for("ESC_INFO", lambda m: m.info == 0b11, since)
+    assert back.temperature[0] == 4000  # 40 °C from its earlier MSG2
+    status = gcs.wait_for("ESC_STATUS", lambda m: m.rpm[0] == 4321, since)
+    assert status.voltage[0] == pytest.approx(12.0)
