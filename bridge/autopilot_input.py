@@ -35,8 +35,10 @@ from bridge.mavlink.actuators import (
     heartbeat_autopilot,
 )
 from bridge.mavlink.clock import AutopilotClock
+from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
-from bridge.mavlink.transport import AutopilotTransport, open_transport, parse_url
+from bridge.mavlink.transport import open_transport
+from bridge.mavlink.transport.base import AutopilotTransport
 from bridge.mixing.definition import AXIS_VALID_RANGE, PWM_RANGE_US, MixerDefinition
 from bridge.mixing.mixer import AxisChannels, Mixer
 from bridge.output.mailbox import InputSnapshot, LoopStats

@@ -205,7 +205,7 @@ def _choice_int(*choices: int) -> Callable[[Any], str | None]:
 
 
 MESSAGE_FAMILIES = ("esc_status", "esc_info", "esc_telemetry")
-"""The ESC telemetry families a MAVLink connection can carry (``bridge.mavlink_out``)."""
+"""The ESC telemetry families a MAVLink connection can carry (``bridge.mavlink.esc_messages``)."""
 MAX_MESSAGE_HZ = 100.0
 _MESSAGE_SET = "a table of esc_status, esc_info, esc_telemetry = rate in Hz 0..100 (0 = off)"
 

@@ -39,7 +39,7 @@ from bridge.config import BridgeConfig
 from bridge.errors import BridgeError, LinkError
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.fanout import Fanout
-from bridge.mavlink_in import MavlinkLink
+from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.definition import INPUT_NAMES
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.motor_test import (

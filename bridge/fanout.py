@@ -19,8 +19,8 @@ from bridge.can_in import CanReader, Recorder, learn_ckesc_ids, reader_filters
 from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
-from bridge.mavlink_in import MavlinkLink
-from bridge.mavlink_out import MavlinkTelemetry
+from bridge.mavlink.link import MavlinkLink
+from bridge.mavlink.telemetry_out import MavlinkTelemetry
 from bridge.telemetry.state import EscTable
 from bridge.zenoh_out import TelemetrySources, ZenohOut
 

@@ -38,8 +38,8 @@ from bridge.can_io import check_interface
 from bridge.config import BridgeConfig, with_esc_count
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
-from bridge.mavlink_in import Endpoint, check_endpoints
-from bridge.mavlink_out import describe_sets
+from bridge.mavlink.endpoints import Endpoint, check_endpoints
+from bridge.mavlink.esc_messages import describe_sets
 from bridge.mixing.definition import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition
 from bridge.mixing.loader import load_mixer
 from bridge.output.busload import check_bus_load
@@ -72,7 +72,7 @@ SOURCE_VALID_RANGES: dict[str, tuple[float, float]] = {
     "actuator_control_target": (-1.5, 1.5),
 }
 
-# Channels each source fills (bridge.mavlink_in's decoders): SERVO_OUTPUT_RAW ports 0 and 1 of
+# Channels each source fills (bridge.mavlink.actuators): SERVO_OUTPUT_RAW ports 0 and 1 of
 # 16 and ACTUATOR_OUTPUT_STATUS's 32 actuators fill ch1..ch32, HIL_ACTUATOR_CONTROLS ch1..ch16;
 # ACTUATOR_CONTROL_TARGET fills no channel but roll, pitch, yaw and thrust.
 SOURCE_CHANNELS: dict[str, int] = {

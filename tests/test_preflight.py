@@ -25,7 +25,8 @@ from hypothesis import strategies as st
 from bridge.config import SECTIONS, BridgeConfig, build_config, read_config_file
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV
-from bridge.mavlink_in import Endpoint, MavlinkLink, check_endpoints
+from bridge.mavlink.endpoints import Endpoint, check_endpoints
+from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.loader import load_mixer
 from bridge.mixing.mixer import Mixer
 from bridge.preflight import SOURCE_VALID_RANGES, plan

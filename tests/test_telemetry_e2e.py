@@ -35,7 +35,7 @@ from bridge.mavlink import load_dialect
 
 S = ckesc.Msg1Status
 # The test's autopilot link stands in for a ground station here: it gets every family (the
-# per-link default sets are tested in test_mavlink_link_sets.py).
+# per-link default sets are tested in mavlink/test_link_sets.py).
 EVERY_FAMILY = "autopilot_messages = { esc_status = 10, esc_info = 1, esc_telemetry = 10 }\n"
 dialect = load_dialect()
 INT16_MAX = 32767

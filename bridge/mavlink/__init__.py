@@ -1,4 +1,19 @@
-"""esc-bridge's own MAVLink dialect: pymavlink's ardupilotmega plus ESC_INFO and ESC_STATUS.
+"""The autopilot side: everything MAVLink, in the order the data flows.
+
+In the control loop: :mod:`~bridge.mavlink.endpoints` (connection strings),
+:mod:`~bridge.mavlink.transport` (non-blocking bytes), :mod:`~bridge.mavlink.frames` (frame
+scanner, signing check), :mod:`~bridge.mavlink.actuators` (motor-output decoders, pure),
+:mod:`~bridge.mavlink.clock` (the autopilot's clock on ours). In the main process:
+:mod:`~bridge.mavlink.link` (the link and its outputs) with :mod:`~bridge.mavlink.connection`,
+:mod:`~bridge.mavlink.signing`, :mod:`~bridge.mavlink.tlog`, :mod:`~bridge.mavlink.stats`,
+:mod:`~bridge.mavlink.heartbeat` (own HEARTBEAT, stream requests; the negotiation itself in
+:mod:`~bridge.mavlink.streams`) and :mod:`~bridge.mavlink.commands` (command dispatch); and the
+outgoing ESC telemetry, :mod:`~bridge.mavlink.esc_messages` (pure encoders) and
+:mod:`~bridge.mavlink.telemetry_out` (the sender), which never imports the link. Imports go one
+way: no module here imports one that imports it back.
+
+This module itself is esc-bridge's own MAVLink dialect: pymavlink's ardupilotmega plus ESC_INFO
+and ESC_STATUS.
 
 pymavlink 2.4.50 bundles no ESC_INFO (290) or ESC_STATUS (291), so a stock receiver reports
 them as ``UNKNOWN_290``/``UNKNOWN_291``. ``esc_bridge.xml`` (package data) adds them with the

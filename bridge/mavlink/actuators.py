@@ -10,7 +10,7 @@ checks every layout against pymavlink's dialect.
 
 The input vector has :data:`INPUT_VECTOR_LEN` floats in the order of
 ``bridge.mixing.definition.INPUT_NAMES`` (``ch1..ch32, roll, pitch, yaw, thrust``); NaN means
-absent. The semantics are those of :class:`bridge.mavlink_in.MavlinkLink`'s decoders:
+absent. :class:`bridge.mavlink.link.MavlinkLink` decodes with these same decoders:
 
 ======================================  ===================================================
  source (``[mavlink] source``)           message and rule
@@ -34,7 +34,7 @@ absent. The semantics are those of :class:`bridge.mavlink_in.MavlinkLink`'s deco
 
 A float that is not finite is absent: an autopilot's inf is no command, it would saturate the
 output. The decoders do not look at the sender: the caller obeys only the autopilot's system
-and component id, as :class:`bridge.mavlink_in.MavlinkLink` does.
+and component id, as :class:`bridge.mavlink.link.MavlinkLink` does.
 
 Cost: decode runs for every output message (up to 1000 Hz), so it builds one list per result
 and nothing else: no dicts, no attribute look-ups by name.

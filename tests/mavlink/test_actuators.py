@@ -1,7 +1,7 @@
 """Control-message decoders against pymavlink: its encoder makes the frames (MAVLink 2 with
 truncated payloads, and MAVLink 1 from the v1.0 dialect, which carries no extension fields);
 the expected vectors are built from the field values by name, so every wire layout is checked
-against the dialect. The scenarios follow tests/test_mavlink_in.py's for the old decoders.
+against the dialect. The scenarios follow tests/mavlink/test_link.py's for the old decoders.
 """
 
 from __future__ import annotations

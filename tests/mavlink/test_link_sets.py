@@ -28,7 +28,7 @@ from pymavlink import mavutil
 
 from bridge.escs import ckesc
 from bridge.mavlink import load_dialect
-from bridge.mavlink_out import AUTOPILOT_SETS, OTHER_AUTOPILOT_SET, Family, bytes_per_s
+from bridge.mavlink.esc_messages import AUTOPILOT_SETS, OTHER_AUTOPILOT_SET, Family, bytes_per_s
 
 dialect = load_dialect()
 ARDUPILOT = dialect.MAV_AUTOPILOT_ARDUPILOTMEGA

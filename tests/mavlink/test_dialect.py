@@ -37,7 +37,7 @@ from bridge.mavlink import (
 )
 
 OWN_XML = Path(dialect_impl.__file__).with_name("esc_bridge.xml")
-UPSTREAM = Path(__file__).resolve().parents[2] / "shared" / "mavlink"
+UPSTREAM = Path(__file__).resolve().parents[3] / "shared" / "mavlink"
 needs_upstream = pytest.mark.skipif(
     not (UPSTREAM / "ardupilotmega.xml").is_file(),
     reason=f"upstream MAVLink XML not found at {UPSTREAM}; wire cross-checks need it",
@@ -351,7 +351,7 @@ def test_default_cache_is_outside_the_repository(monkeypatch: pytest.MonkeyPatch
     """Generated code must never land in the source tree, whatever the working directory."""
     monkeypatch.delenv(CACHE_ENV, raising=False)
     monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[2]
     assert not cache_root().resolve().is_relative_to(repo)
 
 

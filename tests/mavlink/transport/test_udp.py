@@ -1,0 +1,89 @@
+"""The datagram transports (udpin, udpout) against real sockets on 127.0.0.1.
+
+Every call into a transport under test is timed (:class:`watched.Watched`): one that waited
+or spun fails the test.
+"""
+
+from __future__ import annotations
+
+import itertools
+import socket
+import time
+
+import pytest
+import watched
+from watched import TIMEOUT_S, Open, frame, free_port, receive_datagram
+
+from bridge.mavlink.transport.udp import UdpInTransport, UdpOutTransport
+
+opened = watched.opened
+
+
+def test_udpin_and_udpout_carry_data_both_ways(opened: Open) -> None:
+    address = f"127.0.0.1:{free_port()}"
+    server = opened(f"udpin:{address}")
+    client = opened(f"udpout:{address}")
+    assert isinstance(server.transport, UdpInTransport)
+    assert isinstance(client.transport, UdpOutTransport)
+    assert server.stats.connected and client.stats.connected
+
+    assert server.send(b"nobody yet") is False  # udpin knows no peer before a datagram
+    assert server.stats.frames_dropped == 1
+    assert client.send(b"\xfd" + bytes(range(40)))
+    data, _ = receive_datagram(server)
+    assert data == b"\xfd" + bytes(range(40))
+    assert server.send(b"reply")
+    assert receive_datagram(client)[0] == b"reply"
+
+    assert (server.stats.reads, server.stats.bytes_in, server.stats.frames_sent) == (1, 41, 1)
+    assert (client.stats.reads, client.stats.bytes_in, client.stats.bytes_out) == (1, 5, 41)
+
+
+def test_udpin_replies_to_the_latest_sender(opened: Open) -> None:
+    port = free_port()
+    server = opened(f"udpin:127.0.0.1:{port}")
+    first = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    second = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for sock in (first, second):
+            sock.bind(("127.0.0.1", 0))
+            sock.settimeout(TIMEOUT_S)
+        first.sendto(b"one", ("127.0.0.1", port))
+        assert receive_datagram(server)[0] == b"one"
+        assert server.send(b"to first")
+        assert first.recv(100) == b"to first"
+
+        second.sendto(b"two", ("127.0.0.1", port))
+        assert receive_datagram(server)[0] == b"two"
+        assert server.send(b"to second")
+        assert second.recv(100) == b"to second"
+        first.settimeout(0.1)
+        with pytest.raises(TimeoutError):
+            first.recv(100)
+    finally:
+        first.close()
+        second.close()
+
+
+def test_udp_stamps_are_kernel_arrival_times_on_the_monotonic_clock(opened: Open) -> None:
+    port = free_port()
+    server = opened(f"udpin:127.0.0.1:{port}")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+        sent_ns: list[tuple[int, int]] = []
+        for index in range(4):
+            before_ns = time.monotonic_ns()
+            sender.sendto(frame(index, 40), ("127.0.0.1", port))
+            sent_ns.append((before_ns, time.monotonic_ns()))
+            time.sleep(0.02)
+        time.sleep(0.2)  # the datagrams wait in the socket: their stamps must not move
+        read_before_ns = time.monotonic_ns()
+        stamps = [receive_datagram(server)[1] for _ in range(4)]
+        read_after_ns = time.monotonic_ns()
+
+    # Read back to back, yet stamped when each arrived: 20+ ms apart, the last ~200 ms old.
+    for (before_ns, after_ns), stamp_ns in zip(sent_ns, stamps, strict=True):
+        assert before_ns - 1_000_000 <= stamp_ns <= after_ns + 1_000_000
+        assert stamp_ns <= read_after_ns  # never later than the read
+    gaps_ms = [(b - a) / 1e6 for a, b in itertools.pairwise(stamps)]
+    assert all(gap >= 19 for gap in gaps_ms), gaps_ms
+    assert read_before_ns - stamps[-1] >= 190_000_000
