@@ -44,9 +44,9 @@ from bridge.can_io import (
 from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
 from bridge.escs import Protocol, ckesc, ft
+from bridge.escs.ft.sim import SimFt
 from bridge.fanout import Fanout
 from bridge.mavlink_in import MavlinkLink
-from bridge.sim.ft_sim import SimFt
 from bridge.sim.runner import Simulator, make_escs
 from bridge.telemetry.state import EscTable
 

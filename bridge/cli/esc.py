@@ -1,12 +1,13 @@
 """``esc-bridge esc``: the group of ESC commands, the CKESC set-up ones
-(:mod:`bridge.cli.esc_setup`; each handler loads the client itself) and ``spin``
+(:mod:`bridge.escs.ckesc.cli`; each handler loads the client itself) and ``spin``
 (:mod:`bridge.cli.spin`)."""
 
 from __future__ import annotations
 
 import argparse
 
-from bridge.cli import esc_setup, spin
+from bridge.cli import spin
+from bridge.escs.ckesc import cli as esc_setup
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -350,13 +350,13 @@ def make_escs(
     if protocol == "ft":
         if channels is not None:
             raise ValueError("channels: FT ESCs have no throttle channel")
-        from bridge.sim.ft_sim import SimFt
+        from bridge.escs.ft.sim import SimFt
 
         return [SimFt(esc_id, motor=Motor(motor_params)) for esc_id in ids]
     channels = list(range(1, n + 1)) if channels is None else list(channels)
     if len(channels) != n:
         raise ValueError(f"channels={channels!r}: {len(channels)} channels for {n} ESCs")
-    from bridge.sim.ckesc_sim import SimCkesc
+    from bridge.escs.ckesc.sim import SimCkesc
 
     return [
         SimCkesc(node_id, channel, motor=Motor(motor_params))

@@ -19,9 +19,9 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, Daemon, free_port, multicast_b
 from bridge.cli import main
 from bridge.errors import CrcError
 from bridge.escs import ckesc, ft
+from bridge.escs.ckesc.sim import SimCkesc
+from bridge.escs.ft.sim import SimFt
 from bridge.sim.base import SimEsc
-from bridge.sim.ckesc_sim import SimCkesc
-from bridge.sim.ft_sim import SimFt
 from bridge.sim.motor import Battery
 from bridge.sim.runner import FAULT_KINDS, ScheduledFault, Simulator, make_escs
 

@@ -3,7 +3,7 @@
 
 One ``add_esc_<command>(esc_commands)`` per command adds its parser to the ``esc`` group that
 :mod:`bridge.cli.esc` creates; each parser has the bus flags of :func:`add_bus_arguments` and a
-handler that runs :class:`~bridge.esc_setup.CkescClient` (imported lazily) and prints the
+handler that runs :class:`~bridge.escs.ckesc.setup.CkescClient` (imported lazily) and prints the
 result, as text or with ``--json`` as one JSON object. Like the rest of :mod:`bridge.cli` this
 module prints.
 
@@ -44,7 +44,7 @@ from bridge.escs.ckesc import (
 )
 
 if TYPE_CHECKING:
-    from bridge.esc_setup import CkescClient
+    from bridge.escs.ckesc.setup import CkescClient
 
     EscCommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
     """What ``add_subparsers`` returns: the ``esc`` group's commands."""
@@ -244,7 +244,7 @@ def open_client(args: argparse.Namespace) -> Iterator[CkescClient]:
         LinkError: the bus cannot be opened.
     """
     from bridge.can_io import open_bus
-    from bridge.esc_setup import CkescClient
+    from bridge.escs.ckesc.setup import CkescClient
 
     can_config, bitrate = bus_config(args)
     bus = open_bus(can_config, bitrate)
@@ -289,7 +289,7 @@ def _print_json(value: Any) -> None:
 
 def jsonable(value: Any) -> Any:
     """A result for JSON: records as objects, enums and LED colours by their CLI names."""
-    from bridge.esc_setup import value_name
+    from bridge.escs.ckesc.setup import value_name
 
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
@@ -308,7 +308,7 @@ _UNITS: Final = (("_ms", " ms"), ("_c", " °C"), ("_hz", " Hz"), ("_a", " A"), (
 
 def text_value(value: Any) -> str:
     """A field's value for the text output ("reversed", "pwm-can", "cyan", "yes", "14")."""
-    from bridge.esc_setup import value_name
+    from bridge.escs.ckesc.setup import value_name
 
     return value_name(value)
 
@@ -350,7 +350,7 @@ _SCAN_HEADER: Final = (
 
 
 def _scan(args: argparse.Namespace) -> int:
-    from bridge.esc_setup import scan_warnings
+    from bridge.escs.ckesc.setup import scan_warnings
 
     escs = _run(args, lambda client: client.scan())
     warnings = scan_warnings(escs)
