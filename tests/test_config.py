@@ -9,11 +9,12 @@ from typing import Any
 import pytest
 
 from bridge import preflight
-from bridge.busload import bus_load, frame_bits
+from bridge.busload import bus_load
 from bridge.cli import build_parser as _parser
 from bridge.cli.run import run_config
 from bridge.config import build_config, documented_keys, read_config_file, with_esc_count
 from bridge.errors import ConfigError
+from bridge.escs.family import frame_bits
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))
@@ -97,7 +98,7 @@ def test_esc_lists_must_match_the_mixer() -> None:
         with_esc_count(config, 4)
     filled = with_esc_count(build_config({}, "v.toml"), 4)
     assert filled.escs.ids == (1, 2, 3, 4)
-    assert filled.escs.ckesc_channels == (1, 2, 3, 4)
+    assert filled.escs.keys("ckesc").ckesc_channels == (1, 2, 3, 4)
 
 
 def test_ckesc_frame_must_carry_the_channels() -> None:

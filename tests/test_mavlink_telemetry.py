@@ -24,7 +24,7 @@ import pytest
 from pymavlink import mavutil
 
 from bridge.config import MavlinkConfig
-from bridge.escs import ckesc, decode, ft
+from bridge.escs import ckesc, ft, registry
 from bridge.mavlink import load_dialect
 from bridge.mavlink_in import MavlinkLink
 from bridge.mavlink_out import MavlinkTelemetry
@@ -151,9 +151,13 @@ class Expected:
 
 
 def ingest(table: EscTable, msg: can.Message, now_ns: int) -> None:
-    frame = decode(msg)
+    family = registry.family_of(msg.arbitration_id)
+    assert family is not None
+    frame = family.decode(msg)
     assert frame is not None
-    assert table.ingest(frame, now_ns)
+    telemetry = family.telemetry(frame)
+    assert telemetry is not None
+    assert table.ingest(telemetry, now_ns)
 
 
 def feed(table: EscTable, i: int, now_ns: int) -> Expected:

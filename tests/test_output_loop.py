@@ -14,7 +14,7 @@ from conftest import Autopilot, free_port
 from bridge.autopilot_input import InputSetup
 from bridge.config import build_config
 from bridge.escs import ckesc
-from bridge.escs.drivers import CkescDriver
+from bridge.escs.ckesc.driver import CkescDriver
 from bridge.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.mixer import SlewLimiter
 from bridge.output_loop import CommandSelector, LoopSetup, OutputLoop

@@ -16,8 +16,8 @@ What a family provides, by who needs it:
 - the ESC state (and through it MAVLink, Zenoh and the monitor):
   :meth:`EscFamily.telemetry` maps a decoded frame into the neutral :class:`EscTelemetry`, and
   :meth:`EscFamily.commands_seen` reads the bridge's own commands back as :class:`CommandSeen`;
-- the output loop: :meth:`EscFamily.driver`, an :class:`EscDriver` (command fractions -1..1 to
-  frames, safe frames, ticks per cycle);
+- the output loop: :meth:`EscFamily.driver`, an :class:`~bridge.escs.drivers.EscDriver` (command
+  fractions -1..1 to frames, safe frames, ticks per cycle);
 - the start-up checks: :attr:`EscFamily.keys` (its ``[escs]`` keys), the defaults that depend on
   the family, :meth:`EscFamily.check_config`, :meth:`EscFamily.with_esc_count`, and
   :meth:`EscFamily.bus_figures` (the worst-case bus load of its commands and telemetry);
@@ -33,7 +33,7 @@ CLI commands are imported only when asked for.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     from can.typechecking import CanFilter
 
     from bridge.config import BridgeConfig
+    from bridge.escs.drivers import EscDriver
     from bridge.sim.base import SimEsc
     from bridge.sim.motor import MotorParams
 
@@ -112,6 +113,9 @@ class EscTelemetry:
     """The ESC_FAILURE_FLAGS that ``status`` raises (the family's table)."""
     counters: Mapping[str, int] = field(default_factory=dict)
     """Slow information (counts, run times, fault codes), merged into the ESC's counters."""
+    fault_counters: frozenset[str] = frozenset()
+    """Which of ``counters`` are fault codes: while one is non-zero, the ESC reports a fault
+    (GENERIC)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,21 +140,6 @@ class BusFigures:
     telemetry_bits_per_s: float
 
 
-class EscDriver(Protocol):
-    """Turns one tick's command fractions into CAN frames, limited to the protocol's range."""
-
-    ticks_per_cycle: int
-    """Ticks to address every ESC once (1: every tick addresses every ESC)."""
-
-    def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        """Frames for ``tick`` commanding ``fractions`` (one per mixer output, -1..1)."""
-        ...
-
-    def safe_frames(self, tick: int) -> list[can.Message]:
-        """Frames for ``tick`` commanding the safe output (motors stopped)."""
-        ...
-
-
 class EscFamily(Protocol):
     """One ESC family: everything the bridge needs from it. See the module docstring."""
 
@@ -169,9 +158,9 @@ class EscFamily(Protocol):
     :func:`bridge.config.key` (the key names carry the family's prefix, e.g. ``ft_mode``). The
     validated instance is ``config.escs.keys(name)``; :meth:`with_esc_count` returns it
     filled for the mixer's size."""
-    fault_counters: frozenset[str]
-    """Counters of :attr:`EscTelemetry.counters` whose non-zero value is a fault the ESC
-    reports (GENERIC failure)."""
+    learns_node_ids: bool
+    """Whether :meth:`learn_node_ids` can ask the ESCs for their IDs (``[telemetry]
+    learn_ids``)."""
 
     # -- frames ------------------------------------------------------------------------------
 
@@ -179,9 +168,9 @@ class EscFamily(Protocol):
         """Whether a 29-bit CAN ID lies in the family's ID space (it may still not decode)."""
         ...
 
-    def decode(self, msg: can.Message, esc_nodes: Any = None) -> EscFrame | None:
+    def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
         """One frame decoded (pure: no I/O, clock or logging); ``None``: not the family's.
-        ``esc_nodes`` (a container of our ESCs' IDs, or None) lets a family whose IDs other
+        ``esc_nodes`` (our ESCs' IDs, or None) lets a family whose IDs other
         protocols share refuse foreign nodes.
 
         Raises:
@@ -193,7 +182,7 @@ class EscFamily(Protocol):
         """The ESC a (possibly malformed) frame's ID names, or None if it names none."""
         ...
 
-    def reader_filters(self, esc_ids: Sequence[int], read_back_commands: bool) -> list[CanFilter]:
+    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
         """python-can filters passing the telemetry of ``esc_ids`` and, with
         ``read_back_commands``, the bridge's own commands.
 
@@ -239,7 +228,9 @@ class EscFamily(Protocol):
     # -- configuration -----------------------------------------------------------------------
 
     def check_config(self, config: BridgeConfig) -> None:
-        """Checks across sections once ``config`` is built (this family selected).
+        """Checks of the family's keys against the other sections once ``config`` is built.
+        Called for every family, selected or not (a check that only matters for the selected
+        family tests ``config.output.protocol == self.name``).
 
         Raises:
             bridge.errors.ConfigError: naming the file, the section and key.
@@ -247,8 +238,8 @@ class EscFamily(Protocol):
         ...
 
     def with_esc_count(self, config: BridgeConfig, n_outputs: int) -> Any:
-        """The family's keys with their per-ESC lists filled for ``n_outputs`` (this family
-        selected, ``[escs] ids`` already filled).
+        """The family's keys with their per-ESC lists filled for ``n_outputs`` (``[escs] ids``
+        already filled). Called for every family, selected or not, as :meth:`check_config`.
 
         Raises:
             bridge.errors.ConfigError: a list without one entry per output, or a value the

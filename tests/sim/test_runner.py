@@ -240,7 +240,7 @@ def test_make_escs_defaults_and_checks() -> None:
         (lambda: make_escs("ckesc", 1, [126]), "1..125"),
         (lambda: make_escs("ckesc", 2, channels=[1]), "1 channels for 2"),
         (lambda: make_escs("ft", 1, channels=[1]), "no throttle channel"),
-        (lambda: make_escs("vesc", 1), "'ckesc' or 'ft'"),  # type: ignore[arg-type]
+        (lambda: make_escs("vesc", 1), "'ckesc' or 'ft'"),
     ]
     for call, match in bad:
         with pytest.raises(ValueError, match=match):

@@ -851,3 +851,21 @@ def _can_test(args: argparse.Namespace) -> int:
         )
         return EXIT_FAILED
     return EXIT_OK
+
+
+def add_commands(esc_commands: EscCommands) -> None:
+    """Add every CKESC set-up command to the ``esc`` group."""
+    add_esc_scan(esc_commands)
+    add_esc_set_id(esc_commands)
+    add_esc_baud(esc_commands)
+    add_esc_led(esc_commands)
+    add_esc_rotation(esc_commands)
+    add_esc_report_rate(esc_commands)
+    add_esc_throttle_source(esc_commands)
+    add_esc_self_test(esc_commands)
+    add_esc_expand(esc_commands)
+    add_esc_info(esc_commands)
+    add_esc_maintenance(esc_commands)
+    add_esc_config(esc_commands)
+    add_esc_reports(esc_commands)
+    add_esc_can_test(esc_commands)

@@ -45,7 +45,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Final, TypeVar, cast
 
@@ -106,6 +106,7 @@ from bridge.escs.ckesc import (
 __all__ = [
     "ANSWER_WINDOW_S",
     "DEFAULT_TIMEOUT_S",
+    "LEARN_WINDOW_S",
     "LED_COLOR_NAMES",
     "SERVICE_NAMES",
     "SET_ID_WINDOW_S",
@@ -117,6 +118,7 @@ __all__ = [
     "ScannedEsc",
     "SelfTestResult",
     "SetIdResult",
+    "learn_node_ids",
     "led_color_name",
     "scan_warnings",
     "value_name",
@@ -128,6 +130,8 @@ DEFAULT_TIMEOUT_S: Final = 0.5
 """How long a request waits for its answer."""
 ANSWER_WINDOW_S: Final = 0.064
 """GET_ESC_ID answers and MSGControl acks come (node_id % 32) x 2 ms late: within 64 ms."""
+LEARN_WINDOW_S: Final = 0.1
+"""How long :func:`learn_node_ids` listens for the answers (all of them by 62 ms)."""
 SET_ID_WINDOW_S: Final = 120
 """An ESC takes Set ID and Set Baud only this long after power-up (seed 4.3.2)."""
 COUNTER_MODULUS: Final = 1 << 32
@@ -373,8 +377,9 @@ class CkescClient:
 
     # -- discovery --------------------------------------------------------------------------
 
-    def find_escs(self) -> list[GetEscIdAnswer]:
-        """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice).
+    def find_escs(self, window_s: float | None = None) -> list[GetEscIdAnswer]:
+        """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice),
+        read for ``window_s`` (default: :data:`ANSWER_WINDOW_S` and the timeout).
 
         Raises:
             LinkError: the bus failed.
@@ -383,7 +388,7 @@ class CkescClient:
         self._drain()
         self._send(request, "GET_ESC_ID")
         frames = self._collect(
-            ANSWER_WINDOW_S + self.timeout_s,
+            ANSWER_WINDOW_S + self.timeout_s if window_s is None else window_s,
             lambda frame: isinstance(frame.message, GetEscIdAnswer),
         )
         return [frame.message for frame in frames if isinstance(frame.message, GetEscIdAnswer)]
@@ -892,6 +897,30 @@ class CkescClient:
         except (can.CanError, OSError) as exc:
             raise LinkError(f"cannot read the CAN bus: {exc}") from exc
         return msg
+
+
+def learn_node_ids(
+    bus: can.BusABC, channels: Sequence[int], window_s: float = LEARN_WINDOW_S
+) -> dict[int, int]:
+    """Ask every CKESC on ``bus`` for its node ID (GET_ESC_ID) and map motors to node IDs:
+    ``{i: node_id}`` for each answering ESC that follows throttle channel ``channels[i]``.
+
+    Raises:
+        LinkError: two ESCs answer with the same throttle channel (they would spin together),
+            or the bus failed.
+    """
+    found: dict[int, int] = {}
+    for answer in CkescClient(bus, timeout_s=window_s).find_escs(window_s):
+        if answer.throttle_channel not in channels:
+            continue
+        other = found.get(answer.throttle_channel)
+        if other is not None and other != answer.node_id:
+            raise LinkError(
+                f"CKESC nodes {other} and {answer.node_id} both follow throttle channel "
+                f"{answer.throttle_channel}; give each ESC its own channel (Set ID)"
+            )
+        found[answer.throttle_channel] = answer.node_id
+    return {i: found[channel] for i, channel in enumerate(channels) if channel in found}
 
 
 def led_color_name(color: LedColor | int) -> str:
