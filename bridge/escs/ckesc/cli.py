@@ -1,8 +1,9 @@
 """``esc-bridge esc COMMAND``: set up CKESC ESCs from the command line (arguments and output);
 ``esc spin``, the motor test for both protocols, is in :mod:`bridge.cli.spin`.
 
-One ``add_esc_<command>(esc_commands)`` per command adds its parser to the ``esc`` group that
-:mod:`bridge.cli.esc` creates; each parser has the bus flags of :func:`add_bus_arguments` and a
+One row of :data:`COMMANDS` per command: :func:`add_commands` adds its parser to the ``esc``
+group that :mod:`bridge.cli.esc` creates; each parser has the bus flags of
+:func:`add_bus_arguments`, ``--node`` where the command takes one, its own arguments, and a
 handler that runs :class:`~bridge.escs.ckesc.setup.CkescClient` (imported lazily) and prints the
 result, as text or with ``--json`` as one JSON object. Like the rest of :mod:`bridge.cli` this
 module prints.
@@ -15,332 +16,50 @@ which are refused before anything is sent (the message names the flag).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import enum
-import json
 import sys
 import textwrap
-from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, Final, TypeAlias, TypeVar
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, Final, TypeAlias
 
 from bridge.cli._common import (
     EXIT_FAILED,
-    EXIT_INTERRUPTED,
     EXIT_OK,
-    add_can_flags,
     positive_seconds,
-    with_flag_names,
 )
-from bridge.config import CanConfig, build_config, merge, read_config_file
-from bridge.errors import ConfigError, NoAnswerError, ValueRangeError, WrongNodeError
+from bridge.errors import ConfigError
 from bridge.escs.ckesc import (
-    BAUD_RATES_BPS,
     ExpandSetCommand,
-    LedColor,
-    MsgControlCommand,
-    Rotation,
     ThrottleSource,
+)
+from bridge.escs.ckesc._cli_common import (
+    _EXPAND_NUMBERS,
+    COLORS,
+    EXPAND_COMMANDS,
+    EXPAND_PARTS,
+    REPORT_COMMANDS,
+    ROTATIONS,
+    SOURCES,
+    _bitrate,
+    _hertz,
+    _integer,
+    _node_argument,
+    _print_json,
+    _run,
+    add_bus_arguments,
+    interval_ms,
+    jsonable,
+    record_lines,
+    text_value,
 )
 
 if TYPE_CHECKING:
-    from bridge.escs.ckesc.setup import CkescClient
-
     EscCommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
     """What ``add_subparsers`` returns: the ``esc`` group's commands."""
 
-_T = TypeVar("_T")
-
-# Flags of the bus -> (section, key) of the configuration they override.
-BUS_FLAGS: Final[dict[str, tuple[str, str]]] = {
-    "--can-interface": ("can", "interface"),
-    "--can-channel": ("can", "channel"),
-    "--bitrate": ("can", "bitrate"),
-}
-
-COLORS: Final[dict[str, LedColor]] = {
-    "off": LedColor(0),
-    "blue": LedColor.BLUE,
-    "green": LedColor.GREEN,
-    "cyan": LedColor.GREEN | LedColor.BLUE,
-    "red": LedColor.RED,
-    "magenta": LedColor.RED | LedColor.BLUE,
-    "yellow": LedColor.RED | LedColor.GREEN,
-    "white": LedColor.RED | LedColor.GREEN | LedColor.BLUE,
-}
-ROTATIONS: Final = {"normal": Rotation.NORMAL, "reversed": Rotation.REVERSED}
-SOURCES: Final = {"can": ThrottleSource.CAN, "pwm-can": ThrottleSource.PWM_AND_CAN}
-REPORT_COMMANDS: Final = {
-    "pause": MsgControlCommand.PAUSE,
-    "resume": MsgControlCommand.RESUME_MSG,
-    "resume-exp": MsgControlCommand.RESUME_EXP,
-}
-EXPAND_COMMANDS: Final = {
-    command.name.lower().replace("_", "-"): command for command in ExpandSetCommand
-}
-"""Expand Set commands by name: direction, led, throttle-interface, ..., system."""
-EXPAND_PARTS: Final[dict[ExpandSetCommand, dict[str, int]]] = {
-    ExpandSetCommand.DIRECTION: {"normal": 1, "reversed": 2},
-    ExpandSetCommand.LED: {"off": 0, "red": 1, "green": 2, "blue": 3},
-    ExpandSetCommand.THROTTLE_INTERFACE: {
-        "pwm": 1,
-        "pwm-tcan": 2,
-        "tcan": 3,
-        "dshot": 4,
-        "pwm-uavcan": 5,
-        "uavcan": 6,
-    },
-    ExpandSetCommand.ACTIVE_FREEWHEELING: {"off": 0, "on": 1},
-    ExpandSetCommand.TIMING: {},
-    ExpandSetCommand.TIMING_2: {},
-    ExpandSetCommand.LOAD_TYPE: {"light": 1, "standard": 2, "heavy": 3, "very-heavy": 4},
-    ExpandSetCommand.PROP_LOCK: {"off": 0, "weak": 1, "medium": 2, "strong": 3},
-    ExpandSetCommand.STARTUP_ACCELERATION: {},
-    ExpandSetCommand.SIGNAL_LOSS_RATE: {},
-    ExpandSetCommand.READ_TEMP_RECORD: {"read": 1},
-    ExpandSetCommand.BAUD: {
-        f"{rate // 1_000_000}m" if rate % 1_000_000 == 0 else f"{rate // 1000}k": code
-        for code, rate in enumerate(BAUD_RATES_BPS)
-    },
-    ExpandSetCommand.SYSTEM: {
-        "factory-reset": 0x00,
-        "leave-test-mode": 0x10,
-        "enter-test-mode": 0x11,
-    },
-}
-"""Names for each Expand Set command's parts (seed 4.4.25); a number is always accepted too."""
-_EXPAND_NUMBERS: Final = {
-    ExpandSetCommand.TIMING: "1..4",
-    ExpandSetCommand.TIMING_2: "1..4",
-    ExpandSetCommand.STARTUP_ACCELERATION: "0..15, higher starts faster",
-    ExpandSetCommand.SIGNAL_LOSS_RATE: "0..15, higher cuts the throttle faster",
-}
-
-# The codec's and the client's field names in a ValueRangeError -> the flag that gave them.
-_FIELD_FLAGS: Final = (
-    ("SetIdRequest.node_id", "--node"),
-    ("SetIdRequest.throttle_channel", "--channel"),
-    ("node = ", "--node"),
-    ("bitrate = ", "BITRATE"),
-    ("SetLedRequest.color", "--color"),
-    ("SetLedRequest.blink_hz", "--blink"),
-    ("SetFreqRequest.msg1_interval_ms", "--msg1-hz"),
-    ("SetFreqRequest.msg2_interval_ms", "--msg2-hz"),
-    ("SetFreqRequest.msg3_interval_ms", "--msg3-hz"),
-    ("ExpandSetRequest.part", "PART"),
-    ("MaintenanceRequest.option", "--option"),
-    ("duration = ", "--seconds"),
-)
-
-
-# --------------------------------------------------------------------------------------------
-# Shared arguments and plumbing
-
-
-def add_bus_arguments(parser: argparse.ArgumentParser, *, json_output: bool = True) -> None:
-    """The bus flags (as ``run``'s), ``--timeout`` and ``--json``."""
-    bus = parser.add_argument_group("CAN bus (as for `esc-bridge run`)")
-    bus.add_argument("--config", metavar="FILE", help="a bridge configuration: its [can] section")
-    add_can_flags(bus, bitrate_help="CAN bit rate, bit/s (CKESC factory: 500000)")
-    parser.add_argument(
-        "--timeout",
-        type=positive_seconds,
-        default=0.5,
-        metavar="S",
-        help="how long to wait for each answer (default 0.5 s)",
-    )
-    if json_output:
-        parser.add_argument("--json", action="store_true", help="print one JSON object")
-
-
-def _node_argument(
-    parser: argparse.ArgumentParser, *, required: bool = True, text: str = ""
-) -> None:
-    parser.add_argument(
-        "--node",
-        type=_integer,
-        required=required,
-        metavar="N",
-        help=text or "the ESC's node ID, 1..125 (`esc scan` lists them; factory ID 125)",
-    )
-
-
-def _integer(text: str) -> int:
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-
-
-def _hertz(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a rate in Hz > 0, got {text!r}")
-    return value
-
-
-def _bitrate(text: str) -> int:
-    lowered = text.strip().lower()
-    scale = {"k": 1000, "m": 1_000_000}.get(lowered[-1:], 1)
-    try:
-        value = float(lowered[:-1] if scale > 1 else lowered) * scale
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(
-            f"expected a bit rate such as 500000, 500k or 1M, got {text!r}"
-        )
-    return round(value)
-
-
-def interval_ms(hz: float) -> int:
-    """A report rate as the nearest interval the ESC can take (2 ms units)."""
-    return 2 * round(500 / hz)
-
-
-def bus_config(args: argparse.Namespace) -> tuple[CanConfig, int]:
-    """The [can] configuration and bit rate: defaults < --config file < flags.
-
-    Raises:
-        ConfigError: a flag or the file is invalid, or the file is for FT ESCs.
-    """
-    overrides: dict[str, dict[str, Any]] = {}
-    for flag, (section, key) in BUS_FLAGS.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
-    try:
-        config = build_config(overrides, "command line")  # the flags alone name themselves
-    except ConfigError as exc:
-        raise with_flag_names(exc, BUS_FLAGS) from None
-    if args.config is not None:
-        raw = read_config_file(args.config)
-        if "options" in overrides.get("can", {}):
-            file_options = raw.get("can", {}).get("options", {})
-            if isinstance(file_options, dict):
-                overrides["can"]["options"] = file_options | overrides["can"]["options"]
-        config = build_config(merge(raw, overrides), args.config)
-        if config.output.protocol != "ckesc":
-            raise ConfigError(
-                f"{args.config}: [output] protocol is {config.output.protocol!r}; "
-                "`esc-bridge esc` sets up CKESC ESCs only"
-            )
-    return config.can, config.bitrate
-
-
-@contextlib.contextmanager
-def open_client(args: argparse.Namespace) -> Iterator[CkescClient]:
-    """A client on the bus the flags name; the bus is shut down on exit.
-
-    A ValueRangeError inside becomes a ConfigError naming the flag (exit status 2).
-
-    Raises:
-        ConfigError: bad flags, a bad file, or a value outside the protocol's range.
-        LinkError: the bus cannot be opened.
-    """
-    from bridge.can_io import open_bus
-    from bridge.escs.ckesc.setup import CkescClient
-
-    can_config, bitrate = bus_config(args)
-    bus = open_bus(can_config, bitrate)
-    try:
-        yield CkescClient(bus, timeout_s=args.timeout)
-    except ValueRangeError as exc:
-        raise ConfigError(_flag_error(exc)) from None
-    finally:
-        bus.shutdown()
-
-
-def _flag_error(exc: ValueRangeError) -> str:
-    text = str(exc)
-    for field, flag in _FIELD_FLAGS:
-        if field in text:
-            if flag.startswith("--msg"):
-                text += f" ({flag} takes 2..50 Hz)"
-            return f"{flag}: {text}; nothing was sent"
-    return f"{text}; nothing was sent"
-
-
-def _run(
-    args: argparse.Namespace, action: Callable[[CkescClient], _T], *, scan_hint: bool = True
-) -> _T:
-    """``action`` with a client. A node that does not answer gets a hint to scan; Ctrl-C is
-    a quiet exit with status 130 (the client has ended what it started)."""
-    try:
-        with open_client(args) as client:
-            return action(client)
-    except NoAnswerError as exc:
-        if not scan_hint or isinstance(exc, WrongNodeError) or args.node is None:
-            raise
-        raise type(exc)(f"{exc} (`esc-bridge esc scan` lists the ESCs on the bus)") from None
-    except KeyboardInterrupt:
-        print("esc-bridge: interrupted", file=sys.stderr)
-        raise SystemExit(EXIT_INTERRUPTED) from None
-
-
-def _print_json(value: Any) -> None:
-    print(json.dumps(jsonable(value)))
-
-
-def jsonable(value: Any) -> Any:
-    """A result for JSON: records as objects, enums and LED colours by their CLI names."""
-    from bridge.escs.ckesc.setup import value_name
-
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, enum.Enum):
-        return value_name(value)
-    if isinstance(value, tuple | list):
-        return [jsonable(item) for item in value]
-    if isinstance(value, dict):
-        return {str(key): jsonable(item) for key, item in value.items()}
-    return value
-
-
-# A field name's unit suffix -> the unit printed after the value.
-_UNITS: Final = (("_ms", " ms"), ("_c", " °C"), ("_hz", " Hz"), ("_a", " A"), ("_s", " s"))
-
-
-def text_value(value: Any) -> str:
-    """A field's value for the text output ("reversed", "pwm-can", "cyan", "yes", "14")."""
-    from bridge.escs.ckesc.setup import value_name
-
-    return value_name(value)
-
-
-def record_lines(record: Any, indent: str = "  ") -> list[str]:
-    """One ``label  value unit`` line per field of a response record."""
-    lines = []
-    for f in dataclasses.fields(record):
-        label, unit = f.name, ""
-        for suffix, text in _UNITS:
-            if label.endswith(suffix):
-                label, unit = label.removesuffix(suffix), text
-                break
-        label = label.replace("_", " ")
-        lines.append(f"{indent}{label:<24} {text_value(getattr(record, f.name))}{unit}")
-    return lines
-
-
 # --------------------------------------------------------------------------------------------
 # scan
-
-
-def add_esc_scan(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "scan",
-        help="list every CKESC on the bus: node ID, channel, information, configuration",
-        description="Ask every ESC for its node ID and throttle channel (GET_ESC_ID), wait out "
-        "the answer window (node_id % 32 x 2 ms, up to 64 ms, plus --timeout), then ask each "
-        "for its ESC information (240) and major configuration (242).",
-    )
-    add_bus_arguments(parser)
-    parser.set_defaults(handler=_scan, node=None)
 
 
 _SCAN_HEADER: Final = (
@@ -404,26 +123,6 @@ def _scan_row(esc: Any) -> str:
 # set-id, baud
 
 
-def add_esc_set_id(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "set-id",
-        help="give the only ESC on the bus a node ID and throttle channel (saved in flash)",
-        description="Give the ESC a node ID and a throttle channel. Set ID reaches every ESC on "
-        "the bus, so nothing is sent unless exactly one ESC answers a scan; and an ESC takes "
-        "it only within 120 s of its power-up. Connect one ESC at a time.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser, text="the node ID to give the ESC, 1..125")
-    parser.add_argument(
-        "--channel",
-        type=_integer,
-        required=True,
-        metavar="C",
-        help="the throttle channel it is to follow, 1..20 (RawCommand channel, motor order)",
-    )
-    parser.set_defaults(handler=_set_id)
-
-
 def _set_id(args: argparse.Namespace) -> int:
     # No scan hint on a missing answer: the error explains the power-up window instead.
     result = _run(args, lambda client: client.set_id(args.node, args.channel), scan_hint=False)
@@ -435,25 +134,6 @@ def _set_id(args: argparse.Namespace) -> int:
             f"{result.node_id}, channel {result.throttle_channel} (saved in the ESC's flash)"
         )
     return EXIT_OK
-
-
-def add_esc_baud(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "baud",
-        help="set an ESC's CAN bit rate (from its next power-up)",
-        description="Set the ESC's CAN bit rate. The ESC takes it only within 120 s of its "
-        "power-up and uses it from the next power-up: the bus (and --bitrate of every "
-        "esc-bridge command) must then run at the new rate.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument(
-        "new_bitrate",  # not "bitrate": that is the bus's own (--bitrate)
-        type=_bitrate,
-        metavar="BITRATE",
-        help="1M, 500k, 250k, 200k, 125k, 100k or 50k (or in bit/s)",
-    )
-    parser.set_defaults(handler=_baud)
 
 
 def _baud(args: argparse.Namespace) -> int:
@@ -472,28 +152,6 @@ def _baud(args: argparse.Namespace) -> int:
 # led, rotation, report-rate, throttle-source
 
 
-def add_esc_led(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "led",
-        help="set an ESC's LED colour and blinking",
-        description="Set the ESC's LED. The ESC takes it only while its reports are on.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument("--color", choices=tuple(COLORS), required=True, help="the colour")
-    parser.add_argument(
-        "--blink",
-        type=_integer,
-        default=0,
-        metavar="HZ",
-        help="0 (steady, the default), 1, 2 or 5 Hz",
-    )
-    parser.add_argument(
-        "--save", action="store_true", help="keep it after power-off (default: until then)"
-    )
-    parser.set_defaults(handler=_led)
-
-
 def _led(args: argparse.Namespace) -> int:
     color = COLORS[args.color]
     response = _run(
@@ -508,21 +166,6 @@ def _led(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def add_esc_rotation(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "rotation",
-        help="set or show an ESC's motor direction",
-        description="Set the motor direction (saved in flash; the motor must be stopped and "
-        "the reports on), or without a value show it.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument(
-        "direction", nargs="?", choices=tuple(ROTATIONS), help="omit to show the direction"
-    )
-    parser.set_defaults(handler=_rotation)
-
-
 def _rotation(args: argparse.Namespace) -> int:
     asked = None if args.direction is None else ROTATIONS[args.direction]
     rotation = _run(args, lambda client: client.rotation(args.node, asked))
@@ -532,23 +175,6 @@ def _rotation(args: argparse.Namespace) -> int:
         verb = "is" if asked is None else "set to"
         print(f"node {args.node}: rotation {verb} {text_value(rotation)}")
     return EXIT_OK
-
-
-def add_esc_report_rate(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "report-rate",
-        help="show or set how often an ESC sends MSG1, MSG2 and MSG3",
-        description="Without rates, show the report intervals; with some, set them (2..50 Hz, "
-        "taken as the nearest interval in 2 ms steps; the others are kept). Factory: MSG1 "
-        "50 Hz, MSG2 10 Hz, MSG3 2 Hz.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    for n, what in ((1, "speed, throttle, status"), (2, "volts, amps"), (3, "temperatures")):
-        parser.add_argument(
-            f"--msg{n}-hz", type=_hertz, metavar="HZ", help=f"MSG{n} ({what}) rate, 2..50 Hz"
-        )
-    parser.set_defaults(handler=_report_rate)
 
 
 def _report_rate(args: argparse.Namespace) -> int:
@@ -568,19 +194,6 @@ def _report_rate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def add_esc_throttle_source(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "throttle-source",
-        help="set or show where an ESC takes its throttle from (CAN, or PWM+CAN)",
-        description="Set the throttle source (saved in flash; at zero throttle only), or "
-        "without a value show it. PWM+CAN prefers the PWM input while it has a signal.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument("source", nargs="?", choices=tuple(SOURCES), help="omit to show the source")
-    parser.set_defaults(handler=_throttle_source)
-
-
 def _throttle_source(args: argparse.Namespace) -> int:
     asked = None if args.source is None else SOURCES[args.source]
     source = _run(args, lambda client: client.throttle_source(args.node, asked))
@@ -595,18 +208,6 @@ def _throttle_source(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------
 # self-test, expand
-
-
-def add_esc_self_test(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "self-test",
-        help="an ESC's power-on self-test result (exit status 1 if it failed)",
-        description="Ask for the power-on self-test result; for a failure, the fault code too "
-        "(Maintenance Information option 2).",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.set_defaults(handler=_self_test)
 
 
 def _self_test(args: argparse.Namespace) -> int:
@@ -624,32 +225,6 @@ def _self_test(args: argparse.Namespace) -> int:
 def _fault_text(fault: Any) -> str:
     name = text_value(fault) if isinstance(fault, enum.Enum) else "unknown"
     return f"0x{int(fault):02X} {name}"
-
-
-def add_esc_expand(esc_commands: EscCommands) -> None:
-    lines = ["commands and their PARTs (a name or a number):"]
-    for name, command in EXPAND_COMMANDS.items():
-        parts = EXPAND_PARTS[command]
-        listed = ", ".join(f"{part} ({number})" for part, number in parts.items())
-        lines.append(f"  {name:<21} {listed or _EXPAND_NUMBERS.get(command, '')}")
-    parser = esc_commands.add_parser(
-        "expand",
-        help="send one Expand Set command by name (direction, led, prop-lock, ...)",
-        description=textwrap.fill(
-            "Send one Expand Set command. It has no answer (the motor beeps): the ESC is asked "
-            "for its information first, and afterwards what the major configuration shows "
-            "(direction, LED, CAN or PWM+CAN) is checked. read-temp-record prints the four "
-            "temperature records. The motor must be stopped.",
-            width=78,
-        ),
-        epilog="\n".join(lines),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument("name", choices=tuple(EXPAND_COMMANDS), metavar="NAME", help="see below")
-    parser.add_argument("part", nargs="?", metavar="PART", help="see below")
-    parser.set_defaults(handler=_expand)
 
 
 def expand_part(command: ExpandSetCommand, text: str | None) -> int:
@@ -711,17 +286,6 @@ def _expand(args: argparse.Namespace) -> int:
 # info, maintenance, config
 
 
-def add_esc_info(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "info",
-        help="an ESC's information: cells, current rating, versions, firmware date",
-        description="Ask for the ESC's information (ESC Information, 240).",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.set_defaults(handler=_info)
-
-
 def _info(args: argparse.Namespace) -> int:
     return _print_record(args, "ESC information", _run(args, lambda c: c.info(args.node)))
 
@@ -734,22 +298,6 @@ def _print_record(args: argparse.Namespace, title: str, record: Any) -> int:
         print(f"node {args.node}: {title}")
         print("\n".join(record_lines(record)))
     return EXIT_OK
-
-
-def add_esc_maintenance(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "maintenance",
-        help="an ESC's maintenance information: run times, maxima, counters, fault code",
-        description="Ask for Maintenance Information: option 0 (total run time, highest MOS "
-        "and capacitor temperatures), 1 (this run's time, run count), 2 (power-on and stop "
-        "counts, self-test fault code); all three by default.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.add_argument(
-        "--option", type=int, choices=(0, 1, 2), help="one option (default: all three)"
-    )
-    parser.set_defaults(handler=_maintenance)
 
 
 def _maintenance(args: argparse.Namespace) -> int:
@@ -765,17 +313,6 @@ def _maintenance(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def add_esc_config(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "config",
-        help="an ESC's major configuration: direction, throttle source and channel, LED, rates",
-        description="Ask for the ESC's major configuration (Get Major Configuration, 242).",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser)
-    parser.set_defaults(handler=_config)
-
-
 def _config(args: argparse.Namespace) -> int:
     config = _run(args, lambda client: client.major_config(args.node))
     return _print_record(args, "major configuration", config)
@@ -783,20 +320,6 @@ def _config(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------
 # reports, can-test: broadcasts
-
-
-def add_esc_reports(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "reports",
-        help="pause or resume the telemetry of every ESC (MSGControl)",
-        description="Pause every ESC's periodic reports, resume MSG1..3, or resume MSG_EXP1..11 "
-        "instead (resume-exp). A broadcast: every ESC on the bus acts on it and acknowledges "
-        "within 64 ms; --node names one whose acknowledgement is required.",
-    )
-    add_bus_arguments(parser)
-    parser.add_argument("action", choices=tuple(REPORT_COMMANDS), help="what to do")
-    _node_argument(parser, required=False, text="require this ESC's acknowledgement")
-    parser.set_defaults(handler=_reports)
 
 
 def _reports(args: argparse.Namespace) -> int:
@@ -808,26 +331,6 @@ def _reports(args: argparse.Namespace) -> int:
         nodes = ", ".join(map(str, result.acked_by))
         print(f"reports {args.action}: acknowledged by node(s) {nodes}")
     return EXIT_OK
-
-
-def add_esc_can_test(esc_commands: EscCommands) -> None:
-    parser = esc_commands.add_parser(
-        "can-test",
-        help="bus test: count each ESC's CANTest frames against its counter (lost frames)",
-        description="Put every ESC in CANTest mode (a broadcast), count the reports each sends "
-        "(every 2 ms) against their counter for --seconds, report the lost frames, and end "
-        "the mode (also on Ctrl-C). Exit status 1 if a frame was lost.",
-    )
-    add_bus_arguments(parser)
-    _node_argument(parser, required=False, text="only this ESC (default: every ESC that reports)")
-    parser.add_argument(
-        "--seconds",
-        type=positive_seconds,
-        default=2.0,
-        metavar="S",
-        help="test for S seconds (default 2)",
-    )
-    parser.set_defaults(handler=_can_test)
 
 
 def _can_test(args: argparse.Namespace) -> int:
@@ -853,19 +356,242 @@ def _can_test(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------------------
+# The commands, as data: one row each, added to the ``esc`` group by :func:`add_commands`.
+
+_Argument: TypeAlias = tuple[tuple[str, ...], dict[str, Any]]
+
+
+def _arg(*names: str, **options: Any) -> _Argument:
+    """One ``parser.add_argument(*names, **options)``, kept for later."""
+    return names, options
+
+
+@dataclasses.dataclass(frozen=True)
+class _Command:
+    """One ``esc-bridge esc`` set-up command: its parser and its handler."""
+
+    name: str
+    help: str
+    description: str
+    handler: Callable[[argparse.Namespace], int]
+    node: str | None = ""
+    """``--node``'s help ("": the usual one); None: no --node."""
+    node_required: bool = True
+    arguments: tuple[_Argument, ...] = ()
+    """Its own arguments, after the bus flags and --node."""
+    parser_options: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _expand_epilog() -> str:
+    lines = ["commands and their PARTs (a name or a number):"]
+    for name, command in EXPAND_COMMANDS.items():
+        parts = EXPAND_PARTS[command]
+        listed = ", ".join(f"{part} ({number})" for part, number in parts.items())
+        lines.append(f"  {name:<21} {listed or _EXPAND_NUMBERS.get(command, '')}")
+    return "\n".join(lines)
+
+
+_REPORTED: Final = ((1, "speed, throttle, status"), (2, "volts, amps"), (3, "temperatures"))
+
+COMMANDS: Final[tuple[_Command, ...]] = (
+    _Command(
+        "scan",
+        "list every CKESC on the bus: node ID, channel, information, configuration",
+        "Ask every ESC for its node ID and throttle channel (GET_ESC_ID), wait out the answer "
+        "window (node_id % 32 x 2 ms, up to 64 ms, plus --timeout), then ask each for its ESC "
+        "information (240) and major configuration (242).",
+        _scan,
+        node=None,
+    ),
+    _Command(
+        "set-id",
+        "give the only ESC on the bus a node ID and throttle channel (saved in flash)",
+        "Give the ESC a node ID and a throttle channel. Set ID reaches every ESC on the bus, so "
+        "nothing is sent unless exactly one ESC answers a scan; and an ESC takes it only within "
+        "120 s of its power-up. Connect one ESC at a time.",
+        _set_id,
+        node="the node ID to give the ESC, 1..125",
+        arguments=(
+            _arg(
+                "--channel",
+                type=_integer,
+                required=True,
+                metavar="C",
+                help="the throttle channel it is to follow, 1..20 (RawCommand channel, motor "
+                "order)",
+            ),
+        ),
+    ),
+    _Command(
+        "baud",
+        "set an ESC's CAN bit rate (from its next power-up)",
+        "Set the ESC's CAN bit rate. The ESC takes it only within 120 s of its power-up and "
+        "uses it from the next power-up: the bus (and --bitrate of every esc-bridge command) "
+        "must then run at the new rate.",
+        _baud,
+        arguments=(
+            _arg(
+                "new_bitrate",  # not "bitrate": that is the bus's own (--bitrate)
+                type=_bitrate,
+                metavar="BITRATE",
+                help="1M, 500k, 250k, 200k, 125k, 100k or 50k (or in bit/s)",
+            ),
+        ),
+    ),
+    _Command(
+        "led",
+        "set an ESC's LED colour and blinking",
+        "Set the ESC's LED. The ESC takes it only while its reports are on.",
+        _led,
+        arguments=(
+            _arg("--color", choices=tuple(COLORS), required=True, help="the colour"),
+            _arg(
+                "--blink",
+                type=_integer,
+                default=0,
+                metavar="HZ",
+                help="0 (steady, the default), 1, 2 or 5 Hz",
+            ),
+            _arg(
+                "--save",
+                action="store_true",
+                help="keep it after power-off (default: until then)",
+            ),
+        ),
+    ),
+    _Command(
+        "rotation",
+        "set or show an ESC's motor direction",
+        "Set the motor direction (saved in flash; the motor must be stopped and the reports "
+        "on), or without a value show it.",
+        _rotation,
+        arguments=(
+            _arg(
+                "direction", nargs="?", choices=tuple(ROTATIONS), help="omit to show the direction"
+            ),
+        ),
+    ),
+    _Command(
+        "report-rate",
+        "show or set how often an ESC sends MSG1, MSG2 and MSG3",
+        "Without rates, show the report intervals; with some, set them (2..50 Hz, taken as the "
+        "nearest interval in 2 ms steps; the others are kept). Factory: MSG1 50 Hz, MSG2 10 "
+        "Hz, MSG3 2 Hz.",
+        _report_rate,
+        arguments=tuple(
+            _arg(f"--msg{n}-hz", type=_hertz, metavar="HZ", help=f"MSG{n} ({what}) rate, 2..50 Hz")
+            for n, what in _REPORTED
+        ),
+    ),
+    _Command(
+        "throttle-source",
+        "set or show where an ESC takes its throttle from (CAN, or PWM+CAN)",
+        "Set the throttle source (saved in flash; at zero throttle only), or without a value "
+        "show it. PWM+CAN prefers the PWM input while it has a signal.",
+        _throttle_source,
+        arguments=(
+            _arg("source", nargs="?", choices=tuple(SOURCES), help="omit to show the source"),
+        ),
+    ),
+    _Command(
+        "self-test",
+        "an ESC's power-on self-test result (exit status 1 if it failed)",
+        "Ask for the power-on self-test result; for a failure, the fault code too (Maintenance "
+        "Information option 2).",
+        _self_test,
+    ),
+    _Command(
+        "expand",
+        "send one Expand Set command by name (direction, led, prop-lock, ...)",
+        textwrap.fill(
+            "Send one Expand Set command. It has no answer (the motor beeps): the ESC is asked "
+            "for its information first, and afterwards what the major configuration shows "
+            "(direction, LED, CAN or PWM+CAN) is checked. read-temp-record prints the four "
+            "temperature records. The motor must be stopped.",
+            width=78,
+        ),
+        _expand,
+        arguments=(
+            _arg("name", choices=tuple(EXPAND_COMMANDS), metavar="NAME", help="see below"),
+            _arg("part", nargs="?", metavar="PART", help="see below"),
+        ),
+        parser_options={
+            "epilog": _expand_epilog(),
+            "formatter_class": argparse.RawDescriptionHelpFormatter,
+        },
+    ),
+    _Command(
+        "info",
+        "an ESC's information: cells, current rating, versions, firmware date",
+        "Ask for the ESC's information (ESC Information, 240).",
+        _info,
+    ),
+    _Command(
+        "maintenance",
+        "an ESC's maintenance information: run times, maxima, counters, fault code",
+        "Ask for Maintenance Information: option 0 (total run time, highest MOS and capacitor "
+        "temperatures), 1 (this run's time, run count), 2 (power-on and stop counts, self-test "
+        "fault code); all three by default.",
+        _maintenance,
+        arguments=(
+            _arg("--option", type=int, choices=(0, 1, 2), help="one option (default: all three)"),
+        ),
+    ),
+    _Command(
+        "config",
+        "an ESC's major configuration: direction, throttle source and channel, LED, rates",
+        "Ask for the ESC's major configuration (Get Major Configuration, 242).",
+        _config,
+    ),
+    _Command(
+        "reports",
+        "pause or resume the telemetry of every ESC (MSGControl)",
+        "Pause every ESC's periodic reports, resume MSG1..3, or resume MSG_EXP1..11 instead "
+        "(resume-exp). A broadcast: every ESC on the bus acts on it and acknowledges within 64 "
+        "ms; --node names one whose acknowledgement is required.",
+        _reports,
+        node="require this ESC's acknowledgement",
+        node_required=False,
+        arguments=(_arg("action", choices=tuple(REPORT_COMMANDS), help="what to do"),),
+    ),
+    _Command(
+        "can-test",
+        "bus test: count each ESC's CANTest frames against its counter (lost frames)",
+        "Put every ESC in CANTest mode (a broadcast), count the reports each sends (every 2 ms) "
+        "against their counter for --seconds, report the lost frames, and end the mode (also "
+        "on Ctrl-C). Exit status 1 if a frame was lost.",
+        _can_test,
+        node="only this ESC (default: every ESC that reports)",
+        node_required=False,
+        arguments=(
+            _arg(
+                "--seconds",
+                type=positive_seconds,
+                default=2.0,
+                metavar="S",
+                help="test for S seconds (default 2)",
+            ),
+        ),
+    ),
+)
+
+
 def add_commands(esc_commands: EscCommands) -> None:
-    """Add every CKESC set-up command to the ``esc`` group."""
-    add_esc_scan(esc_commands)
-    add_esc_set_id(esc_commands)
-    add_esc_baud(esc_commands)
-    add_esc_led(esc_commands)
-    add_esc_rotation(esc_commands)
-    add_esc_report_rate(esc_commands)
-    add_esc_throttle_source(esc_commands)
-    add_esc_self_test(esc_commands)
-    add_esc_expand(esc_commands)
-    add_esc_info(esc_commands)
-    add_esc_maintenance(esc_commands)
-    add_esc_config(esc_commands)
-    add_esc_reports(esc_commands)
-    add_esc_can_test(esc_commands)
+    """Add every command of :data:`COMMANDS` to the ``esc`` group: the bus flags
+    (:func:`add_bus_arguments`), ``--node``, its own arguments, its handler."""
+    for command in COMMANDS:
+        parser = esc_commands.add_parser(
+            command.name,
+            help=command.help,
+            description=command.description,
+            **command.parser_options,
+        )
+        add_bus_arguments(parser)
+        if command.node is not None:
+            _node_argument(parser, required=command.node_required, text=command.node)
+        for names, options in command.arguments:
+            parser.add_argument(*names, **options)
+        parser.set_defaults(handler=command.handler)
+        if command.node is None:
+            parser.set_defaults(node=None)
