@@ -459,9 +459,8 @@ class TelemetryConfig:
     learn_ids: bool = key(
         False,
         _bool,
-        "ask the ESCs for their node IDs at start (families that can ask: CKESC GET_ESC_ID) and "
-        "map them to motors "
-        "by throttle channel, instead of trusting [escs] ids",
+        "ask the ESCs for their node IDs at start (for ESC families that can ask) and map them "
+        "to motors by throttle channel, instead of trusting [escs] ids",
     )
 
 

@@ -89,14 +89,13 @@ class EscSnapshot:
     consumed_mah: float
     """Charge drawn since start, integrated from current_a."""
     counters: dict[str, int] = field(default_factory=dict)
-    """Slow information the ESC reported, named by its family (CKESC: power_on_count,
-    start_count, stop_count, total_run_time_s, run_time_s, self_test_fault, fault_code_2)."""
+    """Slow information the ESC reported (counts, run times, fault codes), named by its
+    family."""
     command: float | None = None
     """The last command seen on the bus for this ESC (the bridge's own, read back)."""
     command_unit: str = ""
-    """What ``command`` is, named by the ESC's family: throttle (CKESC 0..2000), current_a,
-    current_fraction, duty, erpm, brake_current_a, brake_fraction, position_deg,
-    id_current_a."""
+    """What ``command`` is, named by the ESC's family: throttle, current_a, current_fraction,
+    duty, erpm, brake_current_a, brake_fraction, position_deg, id_current_a, ..."""
 
     @property
     def esc_temp_c(self) -> float | None:
