@@ -29,6 +29,14 @@ What a family provides, by who needs it:
 A family module imports no part of the bridge outside ``bridge/escs/`` at import time except
 :mod:`bridge.errors` and, for its keys, :mod:`bridge.config`; its simulator, set-up client and
 CLI commands are imported only when asked for.
+
+Adding a family: a folder ``bridge/escs/<name>/`` (listed in ``pyproject.toml``'s packages)
+whose ``family.py`` has a class with every member of :class:`EscFamily` (``ckesc/`` and ``ft/``
+are the examples: ``driver.py``, ``telemetry.py``, ``bus.py``, ``keys.py``, ``sim.py``), and
+one line in :data:`bridge.escs.registry.FAMILIES`. Its ``[escs]`` keys (each named with the
+family's prefix, so no two families' keys clash) are validated with the others' and read back
+as ``config.escs.keys(name)``; ``[output] protocol``, every ``--protocol`` choice and
+``esc-bridge decode --protocol auto`` follow from the registry.
 """
 
 from __future__ import annotations
