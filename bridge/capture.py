@@ -11,7 +11,7 @@ Binary formats (.blf, .mf4, .db) cannot be resynchronised: an error there ends t
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO, cast
@@ -21,7 +21,7 @@ from can.io.generic import MessageReader
 
 from bridge.errors import ConfigError, FrameError
 from bridge.escs import registry
-from bridge.escs.family import EscFrame
+from bridge.escs.family import EscFamily, EscFrame
 
 # Text formats python-can reads, with their fixed header length in lines (None: the header
 # runs until the first frame); the rest are binary.
@@ -211,24 +211,36 @@ def decode_capture(
     esc_nodes: Collection[int] | None = None,
 ) -> Iterator[CaptureItem]:
     """Read a capture and decode each frame as ``protocol`` (a family's name), or with "auto"
-    as the family whose ID space holds it; see :func:`read_capture` for what it raises.
+    as the first family whose ID space holds it and that understands it (a malformed frame is
+    reported as the first such family's); see :func:`read_capture` for what it raises.
 
     Raises:
         ValueError: ``protocol`` names no family.
     """
-    fixed = None if protocol == "auto" else registry.family(protocol)
+    fixed = None if protocol == "auto" else (registry.family(protocol),)
     for item in read_capture(path):
         if isinstance(item, BadLine):
             yield item
             continue
-        family = fixed or registry.family_of(item.arbitration_id)
-        if family is None:
+        candidates = fixed or registry.families_of(item.arbitration_id)
+        if not candidates:
             yield UndecodedFrame(item, "", None)
             continue
+        yield _decode_one(item, candidates, esc_nodes)
+
+
+def _decode_one(
+    msg: can.Message, candidates: Sequence[EscFamily], esc_nodes: Collection[int] | None
+) -> DecodedFrame | UndecodedFrame:
+    error: FrameError | None = None
+    blamed = candidates[0].name
+    for family in candidates:
         try:
-            frame = family.decode(item, esc_nodes)
+            frame = family.decode(msg, esc_nodes)
         except FrameError as exc:
-            yield UndecodedFrame(item, family.name, exc)
+            if error is None:
+                error, blamed = exc, family.name
             continue
-        name = family.name
-        yield UndecodedFrame(item, name, None) if frame is None else DecodedFrame(item, name, frame)
+        if frame is not None:
+            return DecodedFrame(msg, family.name, frame)
+    return UndecodedFrame(msg, blamed, error)

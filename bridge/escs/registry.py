@@ -52,9 +52,13 @@ def families() -> tuple[EscFamily, ...]:
     return tuple(family(name) for name in FAMILIES)
 
 
+def families_of(arbitration_id: int) -> tuple[EscFamily, ...]:
+    """The families whose ID space holds ``arbitration_id``, in :data:`FAMILIES` order (ID
+    spaces may overlap: UAVCAN v0 vendors share theirs)."""
+    return tuple(candidate for candidate in families() if candidate.owns(arbitration_id))
+
+
 def family_of(arbitration_id: int) -> EscFamily | None:
     """The first family (in :data:`FAMILIES` order) whose ID space holds ``arbitration_id``."""
-    for candidate in families():
-        if candidate.owns(arbitration_id):
-            return candidate
-    return None
+    candidates = families_of(arbitration_id)
+    return candidates[0] if candidates else None
