@@ -1,4 +1,4 @@
-"""``esc-bridge sim``: simulated CKESC or FT ESCs, each with a motor, on a CAN bus."""
+"""``esc-bridge sim``: simulated ESCs of any family, each with a motor, on a CAN bus."""
 
 from __future__ import annotations
 
