@@ -1,5 +1,8 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
+The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
+with it and hands the family's neutral telemetry, or the commands it read back, to the state.
+
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
 udp_multicast another handle of the same bus sees them), since the recording wants every
@@ -15,23 +18,21 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 
 import can
 from can.typechecking import CanFilter
 
-from bridge.can_io import receive_drops, telemetry_filters
-from bridge.errors import CodecError, LinkError
-from bridge.escs import Protocol, ckesc, decode, ft
+from bridge.can_io import receive_drops
+from bridge.errors import CodecError
+from bridge.escs.family import EscFamily
 from bridge.telemetry.state import EscTable
 
 log = logging.getLogger(__name__)
 
 RECV_TIMEOUT_S = 0.1  # how often the reader notices close()
 JOIN_TIMEOUT_S = 2.0
-# GET_ESC_ID: each ESC answers after (node_id % 32) x 2 ms, so 62 ms covers every node.
-GET_ESC_ID_WINDOW_S = 0.1
 # The drop count costs a system call (and a /proc read on udp_multicast): at most this often.
 DROPS_SAMPLE_PERIOD_NS = 1_000_000_000
 
@@ -47,7 +48,7 @@ class ReaderStats:
     telemetry: int = 0
     """Frames that updated an ESC's state."""
     malformed: int = 0
-    """Frames in our protocol's space that failed to decode (CRC, DLC, tail byte, ...)."""
+    """Frames in our family's space that failed to decode (CRC, DLC, tail byte, ...)."""
     read_errors: int = 0
     """Failures of the bus itself while reading."""
     kernel_drops: int | None = None
@@ -58,28 +59,19 @@ class ReaderStats:
 
 
 def reader_filters(
-    protocol: Protocol, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
+    family: EscFamily, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
 ) -> list[CanFilter] | None:
     """The filters for the reader's own bus handle: None (every frame) when ``recording``,
     since the recording wants every frame; else our ESCs' telemetry, plus the bridge's own
     commands with ``read_back_commands`` (the ESC state's ``command`` for the actuators/output
-    key). See :func:`bridge.can_io.telemetry_filters`.
+    key). See the family's :meth:`~bridge.escs.family.EscFamily.reader_filters`.
 
     Raises:
         ValueRangeError: an ESC ID the protocol cannot have.
     """
     if recording:
         return None
-    return telemetry_filters(protocol, esc_ids, read_back_commands)
-
-
-def node_of(msg: can.Message, protocol: Protocol) -> int | None:
-    """The ESC a (possibly malformed) frame's ID names, or None if it names none."""
-    if not msg.is_extended_id or msg.is_error_frame:
-        return None
-    if protocol == "ft":
-        return ft.parse_id(msg.arbitration_id)[0] if msg.arbitration_id >> 16 == 0 else None
-    return int(msg.arbitration_id & 0x7F) or None  # node 0 is the host
+    return family.reader_filters(esc_ids, read_back_commands)
 
 
 class CanReader:
@@ -103,12 +95,12 @@ class CanReader:
         self,
         bus: can.BusABC | Callable[[], can.BusABC | None],
         table: EscTable,
-        protocol: Protocol,
+        family: EscFamily,
         recorder: Recorder | None = None,
     ) -> None:
         self._bus_source = bus if callable(bus) else lambda: bus
         self._table = table
-        self._protocol = protocol
+        self._family = family
         self._recorder = recorder
         self.stats = ReaderStats()
         # Drops of handles the reader read before the current one (a reopened shared handle
@@ -169,53 +161,17 @@ class CanReader:
         stats.frames += 1
         if self._recorder is not None:
             self._recorder(msg)
+        family = self._family
         try:
-            frame = decode(msg, self._protocol, self._table.node_set)
+            frame = family.decode(msg, self._table.node_set)
         except CodecError:
             stats.malformed += 1
-            self._table.count_error(node_of(msg, self._protocol), now_ns)
+            self._table.count_error(family.node_of(msg), now_ns)
             return
-        if frame is not None and self._table.ingest(frame, now_ns):
+        if frame is None:
+            return
+        telemetry = family.telemetry(frame)
+        if telemetry is None:
+            self._table.note_commands(family.commands_seen(frame))
+        elif self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
-
-
-def learn_ckesc_ids(
-    bus: can.BusABC, channels: Sequence[int], window_s: float = GET_ESC_ID_WINDOW_S
-) -> dict[int, int]:
-    """Ask every CKESC on ``bus`` for its node ID (GET_ESC_ID) and map throttle channels to
-    node IDs: ``{channel: node_id}`` for each answering ESC whose channel is in ``channels``.
-
-    Raises:
-        LinkError: two ESCs answer with the same throttle channel (they would spin together).
-    """
-    request = ckesc.CkescFrame(
-        ckesc.default_priority(ckesc.GetEscIdRequest()),
-        ckesc.HOST_NODE_ID,
-        None,
-        0,
-        ckesc.GetEscIdRequest(),
-    )
-    bus.send(ckesc.encode(request), timeout=0.1)
-    deadline = time.monotonic() + window_s
-    found: dict[int, int] = {}
-    while (left := deadline - time.monotonic()) > 0:
-        msg = bus.recv(left)
-        if msg is None:
-            break
-        try:
-            frame = ckesc.decode(msg)
-        except CodecError:
-            continue
-        if frame is None or not isinstance(frame.message, ckesc.GetEscIdAnswer):
-            continue
-        answer = frame.message
-        if answer.throttle_channel not in channels:
-            continue
-        other = found.get(answer.throttle_channel)
-        if other is not None and other != answer.node_id:
-            raise LinkError(
-                f"CKESC nodes {other} and {answer.node_id} both follow throttle channel "
-                f"{answer.throttle_channel}; give each ESC its own channel (Set ID)"
-            )
-        found[answer.throttle_channel] = answer.node_id
-    return found

@@ -6,7 +6,8 @@ What a handle receives (``open_bus(receive=...)``) matters under load: every fra
 is subscribed to costs the kernel a copy and a queue slot, and costs the process a wake-up, a
 read and a decode, whether anyone wants the frame or not. So the output process, which only
 sends, opens a transmit-only handle (``"none"``), and the telemetry reader asks the kernel for
-its ESCs' telemetry only (``"telemetry"`` with :func:`telemetry_filters`).
+its ESCs' telemetry only (``"telemetry"`` with the family's
+:meth:`~bridge.escs.family.EscFamily.reader_filters`).
 """
 
 from __future__ import annotations
@@ -17,15 +18,14 @@ import logging
 import os
 import socket
 import struct
-from collections.abc import Collection, Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from typing import Final, Literal
 
 import can
 from can.typechecking import CanFilter
 
 from bridge.config import CanConfig
-from bridge.errors import ConfigError, LinkError, ValueRangeError
-from bridge.escs import Protocol, ckesc, ft
+from bridge.errors import ConfigError, LinkError
 
 log = logging.getLogger(__name__)
 
@@ -39,28 +39,6 @@ TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
 
 Receive = Literal["all", "telemetry", "none"]
 """What a bus handle receives: every frame, the frames its filters pass, or nothing."""
-
-# -- which IDs are telemetry (PROTOCOLS.md §1.1, §1.3, §2.1, §2.4) ----------------------------
-
-CKESC_TELEMETRY_TYPES: Final = frozenset(range(ckesc.TYPE_MSG1, ckesc.TYPE_MSG_EXP12 + 1))
-"""MSG1..MSG_EXP12 (20050..20064): what :class:`~bridge.telemetry.state.EscTable` takes from an
-ESC. CANTest reports, MSGControl acks, GET_ESC_ID answers and service responses are not."""
-CKESC_COMMAND_TYPES: Final = frozenset(
-    {ckesc.TYPE_RAW_COMMAND_14B, ckesc.TYPE_RAW_COMMAND_12B, ckesc.TYPE_RAW_COMMAND_10B}
-)
-"""RawCommand_14b/12b/10b, sent by the host (node 0): the commands the ESC state reads back."""
-FT_TELEMETRY_COMMANDS: Final = frozenset(ft.Telemetry)
-FT_COMMANDS: Final = frozenset(ft.Command)
-
-_CKESC_TYPE_BITS = 16  # bits 23..8 of a message frame's ID
-_CKESC_NODE_BITS = 7  # bits 6..0
-_CKESC_SERVICE_FLAG = 0x80  # bit 7: 0 for a message (broadcast) frame
-_FT_FIELD_BITS = 8  # ESC ID in bits 15..8, command in bits 7..0
-_FT_ZERO_BITS = 0x1FFF_0000  # bits 28..16 are zero in every FT ID
-
-# Exact search for the fewest blocks gives up after this many steps and keeps the best cover
-# found so far (still exact, maybe one block longer); no ID set of a real vehicle comes near.
-_COVER_SEARCH_BUDGET = 20_000
 
 # -- the socket options python-can does not set for us (Linux) --------------------------------
 
@@ -94,130 +72,6 @@ def check_interface(config: CanConfig, source: str) -> None:
         )
 
 
-def telemetry_filters(
-    protocol: Protocol, esc_ids: Collection[int], read_back_commands: bool
-) -> list[CanFilter]:
-    """python-can ``can_filters`` that pass exactly the telemetry frames of ``protocol`` from
-    the ESCs ``esc_ids`` (CKESC node IDs, FT ESC IDs), and, with ``read_back_commands``, the
-    command frames the ESC state reads back (CKESC RawCommand from node 0; FT commands to
-    those ESCs). Nothing else: no 11-bit frame, no other node's or ESC's frames, no service
-    traffic.
-
-    The kernel (socketcan) tries every filter on every frame, so they are as few as the ID
-    layout allows: each ID field (CKESC message type and source node; FT command and ESC ID)
-    is split into the fewest aligned blocks (value, mask) that cover exactly its values, and
-    one filter is made per pair of blocks. A quad with ESC IDs 1..4 needs 12 (CKESC) or 6
-    (FT). The CKESC priority bits (28..24) match anything, as the decoder ignores them.
-    Remote (RTR) frames with a matching ID also pass (python-can's filters cannot say
-    otherwise); the decoder refuses them and counts them malformed.
-
-    An empty list (no ESCs and no read-back) means "no frame": python-can would take it as
-    "every frame", so :func:`open_bus` turns it into a transmit-only handle.
-
-    Raises:
-        ValueRangeError: an ESC ID outside 1..125 (CKESC: 0 is the host) or 0..255 (FT).
-    """
-    ids = frozenset(esc_ids)
-    if protocol == "ckesc":
-        _check_ids(ids, range(1, ckesc.MAX_NODE_ID + 1), "CKESC node")
-        filters = _ckesc_filters(CKESC_TELEMETRY_TYPES, ids)
-        if read_back_commands:
-            filters += _ckesc_filters(CKESC_COMMAND_TYPES, frozenset({ckesc.HOST_NODE_ID}))
-        return filters
-    _check_ids(ids, range(ft.ESC_ID_MIN, ft.ESC_ID_MAX + 1), "FT ESC")
-    commands = FT_TELEMETRY_COMMANDS | (FT_COMMANDS if read_back_commands else frozenset())
-    return [
-        {
-            "can_id": esc_id << 8 | command,
-            "can_mask": _FT_ZERO_BITS | esc_mask << 8 | command_mask,
-            "extended": True,
-        }
-        for esc_id, esc_mask in _blocks(ids, _FT_FIELD_BITS)
-        for command, command_mask in _blocks(commands, _FT_FIELD_BITS)
-    ]
-
-
-def _check_ids(ids: Iterable[int], allowed: range, what: str) -> None:
-    bad = sorted(i for i in ids if i not in allowed)
-    if bad:
-        raise ValueRangeError(f"{what} IDs {bad} are not in {allowed.start}..{allowed.stop - 1}")
-
-
-def _ckesc_filters(types: frozenset[int], nodes: frozenset[int]) -> list[CanFilter]:
-    return [
-        {
-            "can_id": type_id << 8 | node,
-            "can_mask": type_mask << 8 | _CKESC_SERVICE_FLAG | node_mask,
-            "extended": True,
-        }
-        for node, node_mask in _blocks(nodes, _CKESC_NODE_BITS)
-        for type_id, type_mask in _blocks(types, _CKESC_TYPE_BITS)
-    ]
-
-
-def _blocks(values: frozenset[int], width: int) -> list[tuple[int, int]]:
-    """The fewest (value, mask) blocks over ``width`` bits whose union is exactly ``values``.
-
-    A block is the set of numbers that equal ``value`` on the bits set in ``mask``. The
-    candidates are the largest blocks inside ``values`` (merged pairwise, Quine-McCluskey);
-    a depth-first search with the greedy answer as its first bound picks the fewest.
-    """
-    full = (1 << width) - 1
-    level = {(v, full) for v in values}
-    largest: set[tuple[int, int]] = set()
-    while level:
-        merged: set[tuple[int, int]] = set()
-        used: set[tuple[int, int]] = set()
-        for value, mask in level:
-            for bit in (1 << i for i in range(width)):
-                partner = (value | bit, mask)
-                if mask & bit and not value & bit and partner in level:
-                    merged.add((value, mask & ~bit))
-                    used.update(((value, mask), partner))
-        largest |= level - used
-        level = merged
-    members = {block: _members(*block, width) for block in largest}
-    covering = {v: [b for b in largest if v in members[b]] for v in values}
-
-    best: list[tuple[int, int]] = []
-    left = set(values)
-    while left:  # greedy: the block that covers most of what is left
-        block = max(sorted(largest), key=lambda b: len(members[b] & left))
-        best.append(block)
-        left -= members[block]
-    steps = 0
-
-    def search(left: frozenset[int], chosen: list[tuple[int, int]]) -> None:
-        nonlocal best, steps
-        steps += 1
-        if not left:
-            best = list(chosen)
-            return
-        if len(chosen) + 1 >= len(best) or steps > _COVER_SEARCH_BUDGET:
-            return
-        # Branch on the value the fewest blocks can cover: one of them must be chosen.
-        value = min(left, key=lambda v: (len(covering[v]), v))
-        for block in sorted(covering[value], key=lambda b: (-len(members[b] & left), b)):
-            chosen.append(block)
-            search(left - members[block], chosen)
-            chosen.pop()
-
-    search(frozenset(values), [])
-    return sorted(best)
-
-
-def _members(value: int, mask: int, width: int) -> frozenset[int]:
-    free = [1 << i for i in range(width) if not mask >> i & 1]
-    result = []
-    for combination in range(1 << len(free)):
-        member = value
-        for i, bit in enumerate(free):
-            if combination >> i & 1:
-                member |= bit
-        result.append(member)
-    return frozenset(result)
-
-
 def open_bus(
     config: CanConfig,
     bitrate: int,
@@ -228,7 +82,7 @@ def open_bus(
     """Open the configured bus; ``receive`` says what the handle gets from it.
 
     - ``"all"``: every frame (the recorder, the monitor, ESC set-up, the simulator).
-    - ``"telemetry"``: only frames that match one of ``filters`` (:func:`telemetry_filters`).
+    - ``"telemetry"``: only frames that match one of ``filters`` (a family's ``reader_filters``).
       socketcan filters in the kernel (CAN_RAW_FILTER): other frames cost the process
       nothing. udp_multicast and virtual have no kernel filter: python-can drops the other
       frames in ``recv`` after reading each, so a flood still costs the reader its reads (but

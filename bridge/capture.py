@@ -11,16 +11,17 @@ Binary formats (.blf, .mf4, .db) cannot be resynchronised: an error there ends t
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Container, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, TextIO, cast
+from typing import TextIO, cast
 
 import can
 from can.io.generic import MessageReader
 
 from bridge.errors import ConfigError, FrameError
-from bridge.escs import AnyFrame, Protocol, decode, protocol_of
+from bridge.escs import registry
+from bridge.escs.family import EscFamily, EscFrame
 
 # Text formats python-can reads, with their fixed header length in lines (None: the header
 # runs until the first frame); the rest are binary.
@@ -152,8 +153,8 @@ class DecodedFrame:
     """A frame of a capture that one of our protocols understood."""
 
     msg: can.Message
-    protocol: Protocol
-    frame: AnyFrame
+    protocol: str
+    frame: EscFrame
 
     @property
     def type_name(self) -> str:
@@ -165,7 +166,7 @@ class UndecodedFrame:
     """A frame no protocol understood (``error`` is None) or a malformed one of ours."""
 
     msg: can.Message
-    protocol: Protocol
+    protocol: str
     error: FrameError | None
 
 
@@ -206,20 +207,40 @@ class CaptureSummary:
 
 def decode_capture(
     path: str | Path,
-    protocol: Protocol | Literal["auto"] = "auto",
-    esc_nodes: Container[int] | None = None,
+    protocol: str = "auto",
+    esc_nodes: Collection[int] | None = None,
 ) -> Iterator[CaptureItem]:
-    """Read a capture and decode each frame; see :func:`read_capture` for what it raises."""
+    """Read a capture and decode each frame as ``protocol`` (a family's name), or with "auto"
+    as the first family whose ID space holds it and that understands it (a malformed frame is
+    reported as the first such family's); see :func:`read_capture` for what it raises.
+
+    Raises:
+        ValueError: ``protocol`` names no family.
+    """
+    fixed = None if protocol == "auto" else (registry.family(protocol),)
     for item in read_capture(path):
         if isinstance(item, BadLine):
             yield item
             continue
-        proto = protocol_of(item) if protocol == "auto" else protocol
-        try:
-            frame = decode(item, proto, esc_nodes)
-        except FrameError as exc:
-            yield UndecodedFrame(item, proto, exc)
+        candidates = fixed or registry.families_of(item.arbitration_id)
+        if not candidates:
+            yield UndecodedFrame(item, "", None)
             continue
-        yield (
-            UndecodedFrame(item, proto, None) if frame is None else DecodedFrame(item, proto, frame)
-        )
+        yield _decode_one(item, candidates, esc_nodes)
+
+
+def _decode_one(
+    msg: can.Message, candidates: Sequence[EscFamily], esc_nodes: Collection[int] | None
+) -> DecodedFrame | UndecodedFrame:
+    error: FrameError | None = None
+    blamed = candidates[0].name
+    for family in candidates:
+        try:
+            frame = family.decode(msg, esc_nodes)
+        except FrameError as exc:
+            if error is None:
+                error, blamed = exc, family.name
+            continue
+        if frame is not None:
+            return DecodedFrame(msg, family.name, frame)
+    return UndecodedFrame(msg, blamed, error)

@@ -19,14 +19,11 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal, cast
+from typing import Any, Literal
 
 from bridge.errors import ConfigError
+from bridge.escs import registry
 
-ProtocolName = Literal["ckesc", "ft"]
-CkescCommand = Literal["12b", "14b", "10b"]
-FtMode = Literal["current", "current_percent", "duty", "erpm"]
-FtGear = Literal["none", "low", "middle", "high", "reverse"]
 MavlinkSource = Literal[
     "servo_output_raw", "actuator_output_status", "hil_actuator_controls", "actuator_control_target"
 ]
@@ -42,15 +39,6 @@ _SHOWN = reprlib.Repr()
 _SHOWN.maxstring = _SHOWN.maxother = 60
 _SHOWN.maxlong = 40
 
-# Per-protocol defaults for keys whose right value depends on the protocol.
-DEFAULT_RATE_HZ: dict[ProtocolName, int] = {"ckesc": 400, "ft": 100}
-# CKESC ships at 500 kbit/s (PROTOCOLS.md §1); FT has no factory rate, VESC firmware uses 500k.
-DEFAULT_BITRATE: dict[ProtocolName, int] = {"ckesc": 500_000, "ft": 500_000}
-CKESC_COMMAND_CHANNELS = {"12b": 20, "14b": 4, "10b": 6}  # highest channel each frame carries
-FT_COMMAND_TIMEOUT_MS = 450  # the ESC drops a command not repeated within this (PROTOCOLS.md §2.2)
-# A command must reach each FT ESC at least this many times within its timeout, so that a few
-# lost frames or a stalled cycle never let the ESC time out mid-flight.
-FT_MIN_REFRESHES_PER_TIMEOUT = 4
 # The system ID ground stations use unless told otherwise (QGroundControl, Mission Planner).
 GCS_SYSTEM_ID = 255
 
@@ -154,14 +142,6 @@ def _is_axis_map(v: Any) -> bool:
         and not isinstance(c, bool)
         and 1 <= c <= 32
         for k, c in v.items()
-    )
-
-
-def _is_report_rates(v: Any) -> bool:
-    return (
-        isinstance(v, list | tuple)
-        and len(v) == 3
-        and all(_is_number(x) and 2 <= x <= 50 for x in v)
     )
 
 
@@ -353,9 +333,11 @@ class MixerConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
-    protocol: ProtocolName = key("ckesc", _choice("ckesc", "ft"), "ESC protocol on the bus")
+    protocol: str = key(registry.DEFAULT, _choice(*registry.names()), "ESC protocol on the bus")
     rate_hz: int | None = key(
-        None, _optional(_int_range(1, 1000)), "command rate per ESC (default 400 CKESC, 100 FT)"
+        None,
+        _optional(_int_range(1, 1000)),
+        "command rate per ESC (default: the ESC protocol's own, see config/README.md)",
     )
     latency: Latency = key(
         "fixed",
@@ -425,40 +407,31 @@ class EscsConfig:
     ids: tuple[int, ...] = key(
         (),
         _int_list(1, 125),
-        "ID of the ESC on each mixer output, in output order (CKESC node ID / FT ESC ID); "
+        "ID of the ESC on each mixer output, in output order (its family's node or ESC ID); "
         "default 1..N",
     )
-    ckesc_command: CkescCommand = key(
-        "12b", _choice("12b", "14b", "10b"), "CKESC throttle frame (14b: <= 4 ESCs; 10b: <= 6)"
-    )
-    ckesc_channels: tuple[int, ...] = key(
-        (),
-        _int_list(1, 20),
-        "CKESC throttle channel of each output (set in the ESC with Set ID); default 1..N",
-    )
-    ckesc_msg_hz: tuple[float, float, float] = key(
-        (50.0, 10.0, 2.0),
-        _check(_is_report_rates, "three rates [MSG1, MSG2, MSG3] in Hz, each 2..50"),
-        "CKESC telemetry rates the ESCs are set to (for the bus-load check)",
-    )
-    ft_mode: FtMode = key(
-        "current",
-        _choice("current", "current_percent", "duty", "erpm"),
-        "FT command: current (A), current_percent, duty or erpm",
-    )
-    ft_crc: bool = key(True, _bool, "use the FT commands with CRC-16")
-    ft_gear: FtGear = key(
-        "none", _choice("none", "low", "middle", "high", "reverse"), "FT speed gear"
-    )
-    ft_max_current_a: float = key(20.0, _float_range(0.1, 500), "FT current at full throttle")
-    ft_max_duty: float = key(0.95, _float_range(0.01, 1.0), "FT duty at full throttle")
-    ft_max_erpm: int = key(50_000, _int_range(100, 500_000), "FT erpm at full throttle")
-    ft_brake_current_a: float = key(
-        0.0, _float_range(0, 500), "safe output: brake with this current (0: command 0 A)"
-    )
-    ft_telemetry_hz: float = key(
-        100.0, _float_range(0, 1000), "FT real-time frames per ESC per second (each of 3 kinds)"
-    )
+    families: Mapping[str, Any] = field(default_factory=lambda: _family_keys({}))
+    """Each ESC family's keys (its ``keys`` dataclass), by family name: the ``[escs]`` keys
+    other than ``ids`` belong to the families (bridge/escs/<family>/keys.py)."""
+
+    def keys(self, family: str) -> Any:
+        """The keys of ``family`` (an instance of its ``keys`` dataclass)."""
+        return self.families[family]
+
+
+def _family_keys(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Every family's keys from ``values`` (checked already; other families' keys ignored)."""
+    out = {}
+    for family in registry.families():
+        own = {f.name for f in fields(family.keys)}
+        out[family.name] = family.keys(**{k: v for k, v in values.items() if k in own})
+    return out
+
+
+def _escs_fields() -> list[Any]:
+    """The ``[escs]`` keys: ``ids``, then each family's."""
+    common = [f for f in fields(EscsConfig) if f.name != "families"]
+    return common + [f for family in registry.families() for f in fields(family.keys)]
 
 
 @dataclass(frozen=True)
@@ -467,7 +440,7 @@ class TelemetryConfig:
         500, _int_range(20, 10_000), "an ESC is offline when no frame came for this long"
     )
     pole_pairs: int | tuple[int, ...] = key(
-        7, _pole_pairs, "motor pole pairs (FT erpm / pole pairs = rpm): one, or one per motor"
+        7, _pole_pairs, "motor pole pairs (erpm / pole pairs = rpm): one, or one per motor"
     )
     max_temp_c: float | None = key(
         100.0,
@@ -486,8 +459,8 @@ class TelemetryConfig:
     learn_ids: bool = key(
         False,
         _bool,
-        "CKESC: ask the ESCs for their node IDs (GET_ESC_ID) at start and map them to motors "
-        "by throttle channel, instead of trusting [escs] ids",
+        "ask the ESCs for their node IDs at start (for ESC families that can ask) and map them "
+        "to motors by throttle channel, instead of trusting [escs] ids",
     )
 
 
@@ -545,11 +518,11 @@ class BridgeConfig:
 
     @property
     def rate_hz(self) -> int:
-        return self.output.rate_hz or DEFAULT_RATE_HZ[self.output.protocol]
+        return self.output.rate_hz or registry.family(self.output.protocol).default_rate_hz
 
     @property
     def bitrate(self) -> int:
-        return self.can.bitrate or DEFAULT_BITRATE[self.output.protocol]
+        return self.can.bitrate or registry.family(self.output.protocol).default_bitrate
 
     @property
     def command_sender_ids(self) -> frozenset[int]:
@@ -672,8 +645,12 @@ def build_config(raw: Mapping[str, Any], source: str) -> BridgeConfig:
     return config
 
 
+def _section_fields(cls: type[Any]) -> list[Any]:
+    return _escs_fields() if cls is EscsConfig else list(fields(cls))
+
+
 def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: str) -> Any:
-    known = {f.name: f for f in fields(cls)}
+    known = {f.name: f for f in _section_fields(cls)}
     values: dict[str, Any] = {}
     for k, value in table.items():
         if k not in known:
@@ -686,11 +663,15 @@ def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: 
         if isinstance(value, list):
             value = tuple(value)
         values[k] = value
+    if cls is EscsConfig:
+        own = {f.name for f in fields(EscsConfig)}
+        common = {k: v for k, v in values.items() if k in own}
+        return EscsConfig(**common, families=_family_keys(values))
     return cls(**values)
 
 
 def _check_cross_section(config: BridgeConfig) -> None:
-    escs, source = config.escs, config.source
+    source = config.source
     for url in config.mavlink.output_messages or {}:
         if url not in config.mavlink.outputs:
             listed = ", ".join(repr(u) for u in config.mavlink.outputs) or "none"
@@ -698,21 +679,8 @@ def _check_cross_section(config: BridgeConfig) -> None:
                 f"{source}: [mavlink] output_messages: {url!r} is not one of [mavlink] outputs "
                 f"({listed}); expected an output URL written exactly as in outputs"
             )
-    if escs.ckesc_channels and escs.ids and len(escs.ckesc_channels) != len(escs.ids):
-        raise ConfigError(
-            f"{source}: [escs] ckesc_channels has {len(escs.ckesc_channels)} entries but ids "
-            f"has {len(escs.ids)}; expected one channel per ESC"
-        )
-    if config.output.protocol == "ft":
-        period_ms = 1000 / config.rate_hz
-        if period_ms * FT_MIN_REFRESHES_PER_TIMEOUT > FT_COMMAND_TIMEOUT_MS:
-            slowest = math.ceil(1000 * FT_MIN_REFRESHES_PER_TIMEOUT / FT_COMMAND_TIMEOUT_MS)
-            raise ConfigError(
-                f"{source}: [output] rate_hz: {config.rate_hz} Hz refreshes each FT ESC every "
-                f"{period_ms:.0f} ms; the ESC drops a command after {FT_COMMAND_TIMEOUT_MS} ms, "
-                f"so expected at least {slowest} Hz ({FT_MIN_REFRESHES_PER_TIMEOUT} refreshes "
-                "within the timeout)"
-            )
+    for family in registry.families():
+        family.check_config(config)
 
 
 def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
@@ -722,37 +690,28 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
         ConfigError: the configured lists do not have one entry per mixer output.
     """
     escs = config.escs
-    for name in ("ids", "ckesc_channels"):
-        given = cast(tuple[int, ...], getattr(escs, name))
-        if given and len(given) != n_outputs:
-            raise ConfigError(
-                f"{config.source}: [escs] {name} has {len(given)} entries but mixer "
-                f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
-            )
+    if escs.ids and len(escs.ids) != n_outputs:
+        raise ConfigError(
+            f"{config.source}: [escs] ids has {len(escs.ids)} entries but mixer "
+            f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
+        )
+    config = replace(config, escs=replace(escs, ids=escs.ids or tuple(range(1, n_outputs + 1))))
+    families = {
+        family.name: family.with_esc_count(config, n_outputs) for family in registry.families()
+    }
     pole_pairs = config.telemetry.pole_pairs
     if isinstance(pole_pairs, tuple) and len(pole_pairs) != n_outputs:
         raise ConfigError(
             f"{config.source}: [telemetry] pole_pairs has {len(pole_pairs)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
         )
-    default = tuple(range(1, n_outputs + 1))
-    escs = replace(escs, ids=escs.ids or default, ckesc_channels=escs.ckesc_channels or default)
-    if config.output.protocol == "ckesc":
-        most = CKESC_COMMAND_CHANNELS[escs.ckesc_command]
-        if max(escs.ckesc_channels) > most:
-            raise ConfigError(
-                f"{config.source}: [escs] ckesc_command {escs.ckesc_command!r} carries channels "
-                f"1..{most}, but the ESCs use channels {list(escs.ckesc_channels)}; expected "
-                'ckesc_command = "12b" (channels 1..20) or channels within 1..'
-                f"{most}"
-            )
-    return replace(config, escs=escs)
+    return replace(config, escs=replace(config.escs, families=families))
 
 
 def documented_keys() -> list[tuple[str, str, Any, str]]:
     """(section, key, default, doc) for every key, for docs and the test that checks them."""
     rows = []
     for name, cls in SECTIONS.items():
-        for f in fields(cls):
+        for f in _section_fields(cls):
             rows.append((name, f.name, f.default, f.metadata["doc"]))
     return rows

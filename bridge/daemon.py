@@ -37,6 +37,7 @@ from bridge.autopilot_input import InputSetup
 from bridge.can_io import SHAREABLE_INTERFACES, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError, LinkError
+from bridge.escs import registry
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
@@ -447,7 +448,7 @@ class Supervisor:
             "esc-bridge: %s x%d (%s), mixer %s, %d Hz, loop in a %s; %s",
             config.output.protocol,
             len(config.escs.ids),
-            config.escs.ckesc_command if config.output.protocol == "ckesc" else config.escs.ft_mode,
+            registry.family(config.output.protocol).command_kind(config),
             self._plan.mixer.name,
             config.rate_hz,
             self.runner.mode,

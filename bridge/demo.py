@@ -41,9 +41,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any, Final, Literal, TextIO
+from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from bridge.config import BridgeConfig, ZenohConfig, build_config
+from bridge.escs import registry
 from bridge.monitor import (
     LIVE_PERIOD_S,
     PLAIN_PERIOD_S,
@@ -61,9 +62,6 @@ from bridge.sim.autopilot import FLIGHT_S, WAITING, Airframe, SimAutopilot, moto
 if TYPE_CHECKING:
     import zenoh
     from rich.console import RenderableType
-
-Protocol = Literal["ckesc", "ft"]
-PROTOCOLS: Final[tuple[Protocol, ...]] = ("ckesc", "ft")
 
 VEHICLE: Final = "demo"
 PREFIX: Final = f"esc-bridge/{VEHICLE}"
@@ -89,7 +87,7 @@ EXIT_FAILED: Final = 1
 class DemoOptions:
     """What ``esc-bridge demo`` was asked for."""
 
-    protocol: Protocol = "ckesc"
+    protocol: str = registry.DEFAULT
     airframe: Airframe = "quad"
     duration_s: float | None = None
     """Stop after this long from the start, repeating the flight as needed; None: one flight."""
@@ -99,8 +97,8 @@ class DemoOptions:
     """Fly the profile this many times faster (for tests)."""
 
     def __post_init__(self) -> None:
-        if self.protocol not in PROTOCOLS:
-            raise ValueError(f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
+        if self.protocol not in registry.names():
+            raise ValueError(f"protocol must be one of {registry.names()}, got {self.protocol!r}")
         motor_count(self.airframe)  # raises for an unknown airframe
         if self.duration_s is not None and not (0 < self.duration_s < math.inf):
             raise ValueError(f"duration must be a number of seconds > 0, got {self.duration_s!r}")
@@ -164,12 +162,8 @@ def bridge_settings(options: DemoOptions, ports: DemoPorts) -> dict[str, dict[st
             "vehicle": VEHICLE,
         },
     }
-    if options.protocol == "ft":
-        # 100 commands per ESC per second, and a 1 Mbit/s bus so that eight ESCs' real-time
-        # telemetry (3 frames x 100 Hz each) stays under the bus-load ceiling.
-        settings["output"]["rate_hz"] = 100
-        settings["can"]["bitrate"] = 1_000_000
-        settings["escs"]["ft_mode"] = "current"
+    for section, values in registry.family(options.protocol).demo_settings(n).items():
+        settings[section].update(values)
     return settings
 
 

@@ -15,10 +15,11 @@ from typing import Any
 import can
 from can.typechecking import CanFilter
 
-from bridge.can_in import CanReader, Recorder, learn_ckesc_ids, reader_filters
+from bridge.can_in import CanReader, Recorder, reader_filters
 from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
+from bridge.escs import registry
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
 from bridge.telemetry.state import EscTable
@@ -58,6 +59,7 @@ class Fanout:
         output loop and is read as it was opened.
         """
         self._config = config
+        self._family = registry.family(config.output.protocol)
         self.table = table
         self._shared_bus = shared_bus
         self._recorder = recorder
@@ -71,17 +73,18 @@ class Fanout:
             self.zenoh = ZenohOut(config.zenoh, sources)
 
     def start(self) -> None:
-        """Open the reader's bus, learn CKESC node IDs if asked, start every thread.
+        """Open the reader's bus, learn the ESCs' node IDs if asked (and the family can), start
+        every thread.
 
         Raises:
             LinkError: the bus cannot be opened, or the ESCs' answers are inconsistent.
         """
         config = self._config
-        learn = config.telemetry.learn_ids and config.output.protocol == "ckesc"
+        learn = config.telemetry.learn_ids and self._family.learns_node_ids
         filters = self._filters()
         if self._shared_bus is None:
             if filters is None or learn:
-                # GET_ESC_ID answers are not telemetry: learn on an unfiltered handle, then
+                # The ESCs' answers are not telemetry: learn on an unfiltered handle, then
                 # filter by the node IDs learnt.
                 self._own_bus = open_bus(config.can, config.bitrate)
             else:
@@ -104,7 +107,7 @@ class Fanout:
                 "CAN reader receives %s",
                 "every frame" if filters is None else f"what {len(filters)} filters pass",
             )
-        self.reader = CanReader(bus, self.table, config.output.protocol, self._recorder)
+        self.reader = CanReader(bus, self.table, self._family, self._recorder)
         self.reader.start()
         self.mavlink.start()
         if self.zenoh is not None:
@@ -113,7 +116,7 @@ class Fanout:
     def _filters(self) -> list[CanFilter] | None:
         try:
             return reader_filters(
-                self._config.output.protocol,
+                self._family,
                 self.table.node_ids,
                 recording=self._recorder is not None,
                 read_back_commands=self._read_back_commands,
@@ -123,26 +126,27 @@ class Fanout:
             return None
 
     def _learn_ids(self, bus: can.BusABC | None) -> None:
+        title = self._family.title
         if bus is None:
-            log.warning("cannot learn CKESC node IDs: the bus is not open")
+            log.warning("cannot learn %s node IDs: the bus is not open", title)
             return
-        channels = self._config.escs.ckesc_channels
-        found = learn_ckesc_ids(bus, channels)
-        ids = [
-            found.get(channel, node)
-            for channel, node in zip(channels, self.table.node_ids, strict=True)
-        ]
-        missing = [i + 1 for i, channel in enumerate(channels) if channel not in found]
+        found = self._family.learn_node_ids(bus, self._config) or {}
+        configured = self.table.node_ids
+        ids = [found.get(i, node) for i, node in enumerate(configured)]
+        missing = [i + 1 for i in range(len(configured)) if i not in found]
         if len(set(ids)) != len(ids):
             log.warning(
-                "GET_ESC_ID answers %s clash with the configured IDs; keeping [escs] ids %s",
-                found,
-                list(self.table.node_ids),
+                "%s node IDs learnt by motor %s clash with the configured IDs; keeping [escs] "
+                "ids %s",
+                title,
+                {i + 1: node for i, node in found.items()},
+                list(configured),
             )
             return
         self.table.remap(ids)
         log.info(
-            "CKESC node IDs by motor (GET_ESC_ID): %s%s",
+            "%s node IDs by motor (asked on the bus): %s%s",
+            title,
             ids,
             f"; motors {missing} did not answer, configured IDs kept" if missing else "",
         )

@@ -39,19 +39,24 @@ from bridge.can_io import (
     open_bus,
     receive_drops,
     socket_drops,
-    telemetry_filters,
 )
 from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
-from bridge.escs import Protocol, ckesc, ft
+from bridge.escs import ckesc, ft, registry
+from bridge.escs.ft.sim import SimFt
 from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
-from bridge.sim.ft_sim import SimFt
 from bridge.sim.runner import Simulator, make_escs
 from bridge.telemetry.state import EscTable
 
 MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's IPv6 default
 CAN_EFF_FLAG = 0x8000_0000  # linux/can.h: the extended-frame flag in a can_id
+
+
+def telemetry_filters(protocol: str, ids: Collection[int], read_back: bool) -> list[CanFilter]:
+    """The family's kernel filters for its ESCs' telemetry (and commands, with ``read_back``)."""
+    return registry.family(protocol).reader_filters(ids, read_back)
+
 
 # The ID layouts, from PROTOCOLS.md rather than from bridge/can_io.py.
 CKESC_TELEMETRY = range(20050, 20065)  # MSG1 .. MSG_EXP12
@@ -63,7 +68,7 @@ _channels = itertools.count()
 
 
 def is_ours(
-    protocol: Protocol, ids: Collection[int], read_back: bool, can_id: int, extended: bool
+    protocol: str, ids: Collection[int], read_back: bool, can_id: int, extended: bool
 ) -> bool:
     """Whether a frame is telemetry from one of ``ids`` (or, with ``read_back``, a command the
     ESC state reads back), by its ID alone."""
@@ -194,7 +199,7 @@ def floods() -> Iterator[list[Flood]]:
         flood.close()
 
 
-def junk(protocol: Protocol, ids: Collection[int], n: int, seed: int) -> list[can.Message]:
+def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Message]:
     """``n`` frames the reader must not get: near misses (other ESCs' telemetry, our
     commands, our telemetry IDs as 11-bit frames or with high bits set, the other protocol's
     telemetry from our IDs) and random IDs; every one checked against the filters."""
@@ -255,7 +260,7 @@ def junk(protocol: Protocol, ids: Collection[int], n: int, seed: int) -> list[ca
         ("ft", [0, 1, 2, 3, 4, 5, 6, 7], False, 2),
     ],
 )
-def test_filter_counts(protocol: Protocol, ids: list[int], read_back: bool, count: int) -> None:
+def test_filter_counts(protocol: str, ids: list[int], read_back: bool, count: int) -> None:
     filters = telemetry_filters(protocol, ids, read_back)
     assert len(filters) == count
     assert all(f["extended"] is True for f in filters)
@@ -295,7 +300,7 @@ def test_filters_are_as_few_as_the_ids_allow(ids: frozenset[int]) -> None:
     assert len(telemetry_filters("ft", ids, False)) == 2 * fewest_blocks(ids, 4)
 
 
-def frame_ids(protocol: Protocol, ids: frozenset[int]) -> st.SearchStrategy[tuple[int, bool]]:
+def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int, bool]]:
     """(arbitration ID, extended) pairs: mostly near our telemetry, some anywhere."""
     nodes = st.one_of(st.sampled_from(sorted(ids)), st.integers(0, 127))
     if protocol == "ckesc":
@@ -329,7 +334,7 @@ def frame_ids(protocol: Protocol, ids: frozenset[int]) -> st.SearchStrategy[tupl
 @given(data=st.data(), read_back=st.booleans())
 @settings(max_examples=80, deadline=None)
 def test_filters_pass_exactly_our_telemetry(
-    protocol: Protocol, data: st.DataObject, read_back: bool
+    protocol: str, data: st.DataObject, read_back: bool
 ) -> None:
     top = 125 if protocol == "ckesc" else 255
     ids = data.draw(st.frozensets(st.integers(1, top), min_size=1, max_size=20), label="ids")
@@ -355,7 +360,7 @@ def test_filters_pass_exactly_our_telemetry(
         multicast.shutdown()
 
 
-def every_id(protocol: Protocol, ids: list[int]) -> tuple[list[int], list[int], list[int]]:
+def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[int]]:
     """(every telemetry ID from ``ids``, every command ID the state reads back, other IDs)."""
     if protocol == "ckesc":
         telemetry = [ckesc.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
@@ -376,7 +381,7 @@ def every_id(protocol: Protocol, ids: list[int]) -> tuple[list[int], list[int], 
 @pytest.mark.parametrize("protocol", ["ckesc", "ft"])
 @pytest.mark.parametrize("read_back", [False, True])
 def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
-    protocol: Protocol, read_back: bool
+    protocol: str, read_back: bool
 ) -> None:
     ids = [1, 2, 3, 4]
     telemetry, commands, others = every_id(protocol, ids)
@@ -399,8 +404,10 @@ def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
 
 
 def test_reader_filters_pass_everything_to_a_recording() -> None:
-    assert reader_filters("ft", [1], recording=True, read_back_commands=False) is None
-    assert reader_filters("ft", [1], recording=False, read_back_commands=True) == (
+    assert (
+        reader_filters(registry.family("ft"), [1], recording=True, read_back_commands=False) is None
+    )
+    assert reader_filters(registry.family("ft"), [1], recording=False, read_back_commands=True) == (
         telemetry_filters("ft", [1], True)
     )
 
@@ -482,7 +489,9 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
     current = [bus]
     # The reader asks for its bus before each read; None holds it off, as a closed shared
     # handle would.
-    reader = CanReader(lambda: None if held.is_set() else current[0], EscTable(ids), "ft")
+    reader = CanReader(
+        lambda: None if held.is_set() else current[0], EscTable(ids), registry.family("ft")
+    )
     telemetry = [
         ft.encode(ft.FtFrame(esc, record))
         for esc in ids
@@ -549,7 +558,7 @@ class _NoInput:
         pass
 
 
-def bridge_config(port: int, protocol: Protocol, ids: list[int], **telemetry: Any) -> BridgeConfig:
+def bridge_config(port: int, protocol: str, ids: list[int], **telemetry: Any) -> BridgeConfig:
     raw: dict[str, Any] = {
         "output": {"protocol": protocol},
         "can": {

@@ -96,7 +96,7 @@ def test_esc_lists_must_match_the_mixer() -> None:
         with_esc_count(config, 4)
     filled = with_esc_count(build_config({}, "v.toml"), 4)
     assert filled.escs.ids == (1, 2, 3, 4)
-    assert filled.escs.ckesc_channels == (1, 2, 3, 4)
+    assert filled.escs.keys("ckesc").ckesc_channels == (1, 2, 3, 4)
 
 
 def test_ckesc_frame_must_carry_the_channels() -> None:

@@ -22,7 +22,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from bridge.can_in import CanReader
 from bridge.config import CanConfig
 from bridge.errors import ConfigError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, registry
 from bridge.record import Recording, candump_line
 from bridge.telemetry.state import EscTable
 
@@ -52,7 +52,9 @@ def test_can_reader_frames_are_recorded_and_decode_back(tmp_path: Path) -> None:
     receiver = can.Bus(interface="virtual", channel=channel)
     directory = tmp_path / "flights" / "today"  # created, parents too
     recording = Recording.open(directory, CanConfig(channel="vcan7"))
-    reader = CanReader(receiver, EscTable([1, 2, 3, 4]), "ckesc", recorder=recording.can)
+    reader = CanReader(
+        receiver, EscTable([1, 2, 3, 4]), registry.family("ckesc"), recorder=recording.can
+    )
     sent = [m for tid in range(5) for node in (1, 2, 3, 4) for m in ckesc_telemetry(node, tid)]
     sent.append(ckesc.encode_raw_12b(1, [1100, 1105, 1110, 1115], 7))  # the bridge's command
     sent.append(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))

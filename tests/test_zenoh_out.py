@@ -26,7 +26,7 @@ from conftest import free_port
 
 from bridge.config import ZenohConfig
 from bridge.errors import ConfigError
-from bridge.escs import ckesc, decode, ft
+from bridge.escs import ckesc, ft, registry
 from bridge.telemetry.state import EscTable
 from bridge.zenoh_out import TelemetrySources, ZenohOut, session_config
 
@@ -117,9 +117,13 @@ def ingest(table: EscTable, *frames: ckesc.CkescFrame | ft.FtFrame) -> None:
     """Feed frames through the wire: encode, decode back, ingest as the CAN reader does."""
     for frame in frames:
         msg = ckesc.encode(frame) if isinstance(frame, ckesc.CkescFrame) else ft.encode(frame)
-        decoded = decode(msg, esc_nodes={CKESC_NODE})
+        family = registry.family_of(msg.arbitration_id)
+        assert family is not None
+        decoded = family.decode(msg, esc_nodes={CKESC_NODE})
         assert decoded is not None
-        assert table.ingest(decoded, time.monotonic_ns())
+        telemetry = family.telemetry(decoded)
+        assert telemetry is not None
+        assert table.ingest(telemetry, time.monotonic_ns())
 
 
 def ckesc_frame(message: ckesc.CkescMessage, transfer_id: int = 0) -> ckesc.CkescFrame:

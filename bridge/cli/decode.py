@@ -6,10 +6,11 @@ import argparse
 import dataclasses
 import enum
 import json
-from typing import Any
+from typing import Any, cast
 
 from bridge.capture import BadLine, CaptureItem, CaptureSummary, DecodedFrame, decode_capture
 from bridge.cli._common import EXIT_OK
+from bridge.escs import registry
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -21,7 +22,7 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     decode.add_argument("file", help="the capture; its format is taken from the file suffix")
     decode.add_argument(
         "--protocol",
-        choices=("auto", "ckesc", "ft"),
+        choices=("auto", *registry.names()),
         default="auto",
         help="decode every frame as this protocol (default: by each frame's CAN ID space)",
     )
@@ -94,7 +95,7 @@ def _json_line(item: CaptureItem) -> str:
     if isinstance(item, DecodedFrame):
         envelope = {
             f.name: _json_value(getattr(item.frame, f.name))
-            for f in dataclasses.fields(item.frame)
+            for f in dataclasses.fields(cast(Any, item.frame))  # every family's is a dataclass
             if f.name != "message"
         }
         record |= {

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from bridge.cli._common import positive_seconds
+from bridge.escs import registry
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -19,7 +20,10 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "then a summary.",
     )
     demo.add_argument(
-        "--protocol", choices=("ckesc", "ft"), default="ckesc", help="ESC protocol (default ckesc)"
+        "--protocol",
+        choices=registry.names(),
+        default=registry.DEFAULT,
+        help=f"ESC protocol (default {registry.DEFAULT})",
     )
     demo.add_argument(
         "--airframe",

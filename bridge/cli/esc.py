@@ -1,12 +1,13 @@
-"""``esc-bridge esc``: the group of ESC commands, the CKESC set-up ones
-(:mod:`bridge.cli.esc_setup`; each handler loads the client itself) and ``spin``
+"""``esc-bridge esc``: the group of ESC commands, each ESC family's set-up ones (its
+``add_cli_commands``; each handler loads the family's client itself) and ``spin``
 (:mod:`bridge.cli.spin`)."""
 
 from __future__ import annotations
 
 import argparse
 
-from bridge.cli import esc_setup, spin
+from bridge.cli import spin
+from bridge.escs import registry
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -20,18 +21,6 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "values are refused before anything is sent).",
     )
     esc_commands = esc.add_subparsers(dest="esc_command", required=True, metavar="ESC_COMMAND")
-    esc_setup.add_esc_scan(esc_commands)
-    esc_setup.add_esc_set_id(esc_commands)
-    esc_setup.add_esc_baud(esc_commands)
-    esc_setup.add_esc_led(esc_commands)
-    esc_setup.add_esc_rotation(esc_commands)
-    esc_setup.add_esc_report_rate(esc_commands)
-    esc_setup.add_esc_throttle_source(esc_commands)
-    esc_setup.add_esc_self_test(esc_commands)
-    esc_setup.add_esc_expand(esc_commands)
-    esc_setup.add_esc_info(esc_commands)
-    esc_setup.add_esc_maintenance(esc_commands)
-    esc_setup.add_esc_config(esc_commands)
-    esc_setup.add_esc_reports(esc_commands)
-    esc_setup.add_esc_can_test(esc_commands)
-    spin.add_parser(esc_commands)  # CKESC and FT: its own bus flags, as for `run`
+    for family in registry.families():
+        family.add_cli_commands(esc_commands)  # its set-up commands, if it has any
+    spin.add_parser(esc_commands)  # every family: its own bus flags, as for `run`

@@ -20,6 +20,7 @@ from bridge.cli._common import (
 )
 from bridge.config import BridgeConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError
+from bridge.escs import registry
 
 # Flags of the CAN source -> (section, key) of the configuration they override.
 MONITOR_CAN_FLAGS: dict[str, tuple[str, str]] = {
@@ -100,7 +101,9 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     bus = monitor.add_argument_group("CAN source (read only)")
     add_can_flags(bus)
-    bus.add_argument("--protocol", choices=("ckesc", "ft"), help="ESC protocol (default ckesc)")
+    bus.add_argument(
+        "--protocol", choices=registry.names(), help=f"ESC protocol (default {registry.DEFAULT})"
+    )
     escs = bus.add_mutually_exclusive_group()
     escs.add_argument(
         "--escs", type=esc_count, metavar="N", help="N ESCs with IDs 1..N, motor 1 first"

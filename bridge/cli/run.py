@@ -11,6 +11,7 @@ from typing import Any
 from bridge.cli._common import EXIT_OK, can_option, with_flag_names
 from bridge.config import SECTIONS, BridgeConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError
+from bridge.escs import registry
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -50,7 +51,7 @@ RUN_OVERRIDES: dict[str, tuple[str, str, Callable[[str], Any], str]] = {
     "--can-interface": ("can", "interface", str, "python-can interface (default socketcan)"),
     "--can-channel": ("can", "channel", str, "python-can channel (default can0)"),
     "--bitrate": ("can", "bitrate", int, "CAN bit rate, bit/s"),
-    "--protocol": ("output", "protocol", str, "ESC protocol: ckesc or ft"),
+    "--protocol": ("output", "protocol", str, "ESC protocol: " + " or ".join(registry.names())),
     "--rate": ("output", "rate_hz", int, "command rate per ESC, Hz"),
     "--latency": ("output", "latency", str, "fixed or immediate"),
     "--mixer": ("mixer", "name", str, "bundled mixer name or mixer .toml path"),
@@ -64,7 +65,7 @@ RUN_METAVARS = {
     "--can-interface": "NAME",
     "--can-channel": "CHANNEL",
     "--bitrate": "BPS",
-    "--protocol": "ckesc|ft",
+    "--protocol": "|".join(registry.names()),
     "--rate": "HZ",
     "--latency": "fixed|immediate",
     "--mixer": "NAME|FILE",

@@ -1,4 +1,4 @@
-"""``esc-bridge sim``: simulated CKESC or FT ESCs, each with a motor, on a CAN bus."""
+"""``esc-bridge sim``: simulated ESCs of any family, each with a motor, on a CAN bus."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from bridge.cli._common import (
 )
 from bridge.config import BridgeConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError
+from bridge.escs import registry
 
 # Flags of `sim` -> (section, key) of the configuration they override.
 SIM_FLAGS: dict[str, tuple[str, str]] = {
@@ -43,7 +44,9 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="a bridge configuration: its [can], [output] protocol and [escs] ids and "
         "ckesc_channels (without ids: one ESC per output of its mixer)",
     )
-    sim.add_argument("--protocol", choices=("ckesc", "ft"), help="ESC protocol (default ckesc)")
+    sim.add_argument(
+        "--protocol", choices=registry.names(), help=f"ESC protocol (default {registry.DEFAULT})"
+    )
     sim.add_argument(
         "--escs", type=esc_count, metavar="N", help="N ESCs, IDs 1..N unless --ids gives them"
     )
@@ -191,8 +194,8 @@ def _sim(args: argparse.Namespace) -> int:
                 f"(motors 1..{len(ids)})"
             )
         faults.append(ScheduledFault(ids[motor - 1], kind, seconds))
-    channels = list(config.escs.ckesc_channels) if protocol == "ckesc" else None
-    escs = make_escs(protocol, len(ids), ids, channels=channels)
+    channels = registry.family(protocol).channels(config)
+    escs = make_escs(protocol, len(ids), ids, channels=None if channels is None else list(channels))
     try:
         bus = open_bus(config.can, config.bitrate)
     except LinkError as exc:

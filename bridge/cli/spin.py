@@ -9,6 +9,7 @@ from typing import Any
 from bridge.cli._common import EXIT_INTERRUPTED, EXIT_OK, add_can_flags, with_flag_names
 from bridge.config import BridgeConfig, build_config, merge, read_config_file
 from bridge.errors import ConfigError
+from bridge.escs import registry
 
 # Flags of `esc spin` -> (section, key) of the configuration they override, as for `run`.
 SPIN_FLAGS: dict[str, tuple[str, str]] = {
@@ -72,7 +73,9 @@ def add_parser(esc_commands: argparse._SubParsersAction[argparse.ArgumentParser]
     )
     bus = spin.add_argument_group("CAN bus and ESCs (as for `esc-bridge run`)")
     add_can_flags(bus)
-    bus.add_argument("--protocol", choices=("ckesc", "ft"), help="ESC protocol (default ckesc)")
+    bus.add_argument(
+        "--protocol", choices=registry.names(), help=f"ESC protocol (default {registry.DEFAULT})"
+    )
     bus.add_argument(
         "--mixer", metavar="NAME|FILE", help="the mixer: its outputs are the motors (passthrough-4)"
     )
@@ -148,11 +151,7 @@ def _esc_spin(args: argparse.Namespace) -> int:
     request = motor_test.SpinRequest(args.motor, args.throttle, args.seconds)
     plan = spin.plan_spin(spin_config(args), request)
     config = plan.config
-    if config.output.protocol == "ckesc":
-        channel = config.escs.ckesc_channels[plan.index]
-        esc = f"CKESC node {plan.esc_id}, throttle channel {channel}"
-    else:
-        esc = f"FT ESC {plan.esc_id}, {config.escs.ft_mode} mode"
+    esc = registry.family(config.output.protocol).describe_esc(config, plan.index)
     print(
         f"spinning motor {request.motor} ({esc}) up to {100 * plan.fraction:g}% = "
         f"{motor_test.command_text(config, plan.fraction)} for {request.seconds:g} s on "

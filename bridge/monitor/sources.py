@@ -22,6 +22,7 @@ from bridge.can_in import CanReader
 from bridge.can_io import check_interface, open_bus
 from bridge.config import BridgeConfig, ZenohConfig
 from bridge.errors import ConfigError, LinkError
+from bridge.escs import registry
 from bridge.monitor.view import VehicleState
 from bridge.telemetry.state import EscTable
 
@@ -266,7 +267,7 @@ class CanSource:
         """Use :meth:`open`, which opens the bus and starts reading."""
         self.table = EscTable.for_config(config)
         self._bus: can.BusABC | None = bus
-        self.reader = CanReader(bus, self.table, config.output.protocol)
+        self.reader = CanReader(bus, self.table, registry.family(config.output.protocol))
         self._name = f"{config.can.interface}:{config.can.channel}"
 
     @property

@@ -19,7 +19,7 @@ from rich.console import Console, RenderableType
 from rich.table import Table
 from rich.text import Text
 
-from bridge.telemetry.state import (
+from bridge.escs.family import (
     FAILURE_GENERIC,
     FAILURE_INCONSISTENT_CMD,
     FAILURE_MOTOR_STUCK,

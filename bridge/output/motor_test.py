@@ -14,11 +14,11 @@ Two ways in, one way out to the bus:
 Both build each tick's frames with :func:`test_frames` through the project's drivers
 (:func:`bridge.escs.drivers.make_driver`): the frames are exactly the daemon's, every value is
 limited to the protocol's range by the driver, and every ESC but the one under test gets its
-safe value (CKESC: throttle 0 in the same group frame; FT: the safe command on its own tick).
+safe value (in the same frame, or on its own tick, as its family's driver addresses ESCs).
 
-A throttle is a fraction of the ESC's full range (CKESC: of throttle 2000, or 1000 for 10b;
-FT: of ``ft_max_current_a`` / 100 % / ``ft_max_duty`` / ``ft_max_erpm`` in the configured
-``ft_mode``), never above the mixer output's ``max``. Nothing here prints; the CLI does.
+A throttle is a fraction of the ESC's full range as its family defines it (its
+:meth:`~bridge.escs.family.EscFamily.describe_command` says what it is on the wire), never
+above the mixer output's ``max``. Nothing here prints; the CLI does.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
 
+from bridge.escs import registry
 from bridge.mixing.definition import PWM_RANGE_US, MixerDefinition
 
 if TYPE_CHECKING:
@@ -70,11 +71,11 @@ def test_frames(
     """One tick of a motor test: motor ``index`` (0-based) at ``fractions[index]``, every other
     ESC at its safe value; ``fractions`` holds 0 everywhere else.
 
-    A driver that addresses every ESC on every tick (CKESC: one frame per group of channels)
-    gets the whole vector, and a 0 there is exactly its safe value. A driver that addresses one
-    ESC per tick (FT: ESC ``tick % ticks_per_cycle``) sends the test command on the tested
-    ESC's tick and the safe command on the others', since FT's "0 in duty or erpm mode" is not
-    its safe value (0 A, or the brake current).
+    A driver that addresses every ESC on every tick (``ticks_per_cycle`` 1: one frame per group
+    of channels) gets the whole vector, and a 0 there is exactly its safe value. A driver that
+    addresses one ESC per tick (ESC ``tick % ticks_per_cycle``) sends the test command on the
+    tested ESC's tick and the safe command on the others', since "0" in some of its modes
+    (duty, erpm) need not be its safe value (0 A, or a brake current).
 
     Raises:
         whatever the driver raises for a vector of the wrong length (the daemon's loop sends
@@ -88,17 +89,7 @@ def test_frames(
 
 def command_text(config: BridgeConfig, fraction: float) -> str:
     """What ``fraction`` of the full range means on the wire for ``config``'s ESCs."""
-    escs = config.escs
-    if config.output.protocol == "ckesc":
-        full = 1000 if escs.ckesc_command == "10b" else 2000
-        return f"CKESC throttle {int(fraction * full + 0.5)}/{full}"
-    if escs.ft_mode == "current":
-        return f"FT current {fraction * escs.ft_max_current_a:.2f} A"
-    if escs.ft_mode == "current_percent":
-        return f"FT current {100 * fraction:.1f} %"
-    if escs.ft_mode == "duty":
-        return f"FT duty {fraction * escs.ft_max_duty:.3f}"
-    return f"FT {round(fraction * escs.ft_max_erpm)} erpm"
+    return registry.family(config.output.protocol).describe_command(config, fraction)
 
 
 # -- esc spin: the request and the ramp (the spin itself: bridge/output/spin.py) -------------

@@ -62,7 +62,7 @@ class SpinPlan:
 
     @property
     def esc_id(self) -> int:
-        """The motor's CKESC node ID or FT ESC ID."""
+        """The ID on the bus of the motor's ESC."""
         return self.config.escs.ids[self.index]
 
     @property
@@ -134,7 +134,7 @@ def spin(
     ``stop`` is set. With ``handle_signals`` (and on the main thread) SIGINT and SIGTERM set
     ``stop`` for the duration, so Ctrl-C ends the spin without interrupting the safe values.
     Afterwards safe values go to every ESC for ``shutdown_flush_ms`` (at least
-    :data:`SPIN_MIN_FLUSH_MS` and one whole cycle, so every FT ESC gets one), also when an
+    :data:`SPIN_MIN_FLUSH_MS` and one whole cycle, so every ESC gets one), also when an
     exception (from ``progress``, say) ends the spin; the exception then propagates.
 
     Raises:

@@ -1,1 +1,2 @@
-"""Simulated ESCs (CKESC, Flipsky FT) with motor models, and the simulated autopilot of the demo."""
+"""The simulation around the ESCs: motor models, the runner that puts each family's simulated
+ESCs (bridge/escs/<family>/sim.py) on a bus, load generators, and the demo's simulated autopilot."""

@@ -20,11 +20,11 @@ class Faults:
     """Faults injected into one simulated ESC; set or cleared at any time."""
 
     over_temperature: bool = False
-    """Report a MOSFET temperature far above any limit (CKESC: and its status bit)."""
+    """Report a MOSFET temperature far above any limit (and any status bit of its family)."""
     over_current: bool = False
-    """Report a current far above full scale (CKESC: and its status bit)."""
+    """Report a current far above full scale (and any status bit of its family)."""
     corrupt: bool = False
-    """Corrupt every telemetry frame it sends (FT: bad CRC; CKESC: bad tail byte)."""
+    """Corrupt every telemetry frame it sends (a bad CRC or tail byte, as its family can)."""
     silent: bool = False
     """Send nothing at all (a dead ESC or a broken wire); commands still reach the motor."""
     stuck_motor: bool = False
@@ -35,7 +35,7 @@ class SimEsc(Protocol):
     """One simulated ESC."""
 
     node_id: int
-    """CKESC node ID or FT ESC ID."""
+    """The ESC's ID on the bus."""
     motor: Motor
     faults: Faults
 

@@ -18,7 +18,7 @@ Generators (each returns a :class:`Load`, started by ``with`` or by a :class:`Lo
   it ``stopped_s`` later (what a process starved of the CPU looks like from outside). The target
   is always left running when the load stops.
 - :func:`can_flood` ``(port, frames_per_s)``: junk frames on a udp_multicast CAN bus: random
-  standard and extended IDs (none that CKESC or FT decoding claims for itself), random lengths
+  standard and extended IDs (none that an ESC family's decoder claims for itself), random lengths
   and data, sent in 1 ms bursts from a socket of their own (not the bus's port); the report
   says the rate it really reached.
 
@@ -929,13 +929,13 @@ def _run_stall(params: Mapping[str, Any], stop: _Stop, ready: Callable[[], None]
 
 
 def _junk_frames(count: int, extended_share: float, seed: int) -> list[Any]:
-    """``count`` random ``can.Message`` frames that neither ESC protocol takes for its own:
-    standard IDs (which both decoders refuse as not 29-bit, with no ESC to blame) and extended
-    IDs that neither decoder claims or calls malformed (so no ESC gets a fault from them)."""
+    """``count`` random ``can.Message`` frames that no ESC family takes for its own: standard
+    IDs (which the decoders refuse as not 29-bit, with no ESC to blame) and extended IDs that
+    no family's decoder claims or calls malformed (so no ESC gets a fault from them)."""
     import can
 
     from bridge.errors import CodecError
-    from bridge.escs import ckesc, ft
+    from bridge.escs import registry
 
     rng = random.Random(seed)
     frames: list[Any] = []
@@ -948,7 +948,7 @@ def _junk_frames(count: int, extended_share: float, seed: int) -> list[Any]:
         )
         if extended:
             try:
-                if ckesc.decode(msg) is not None or ft.decode(msg) is not None:
+                if any(family.decode(msg) is not None for family in registry.families()):
                     continue
             except CodecError:
                 continue

@@ -60,7 +60,7 @@ class Motor:
         self.stuck = False
         """Fault: the rotor is blocked; commanded current flows, the speed stays 0."""
         self.duty = 0.0
-        """The duty the ESC applies now (-1..1), reported by FT ESCs."""
+        """The duty the ESC applies now (-1..1), for families that report it."""
         self._target_rpm = 0.0
         self._mode = "duty"
         self._setpoint = 0.0
@@ -68,7 +68,7 @@ class Motor:
     # -- commands (what an ESC does with a throttle, current or speed) ---------------------
 
     def set_duty(self, duty: float) -> None:
-        """Fraction of the supply voltage, -1..1 (CKESC throttle / 2000 maps here)."""
+        """Fraction of the supply voltage, -1..1 (a throttle fraction maps here)."""
         self._mode, self._setpoint = "duty", max(-1.0, min(1.0, duty))
 
     def set_current(self, current_a: float) -> None:

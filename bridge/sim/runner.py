@@ -3,12 +3,12 @@ to each ESC, polls them every millisecond and sends what they return.
 
 The ESCs (:class:`~bridge.sim.base.SimEsc`) are pure state machines; this module owns the bus,
 the monotonic clock and the battery they share. :func:`make_escs` builds a bus's worth of
-CKESC or FT ESCs with the project's default IDs.
+simulated ESCs of one family (each family's own simulator) with the project's default IDs.
 
 Decisions where the spec is silent
 ----------------------------------
 - The ESCs' clock is the monotonic clock counted from :meth:`Simulator.start`, so every ESC
-  powers up at 0 s (a CKESC's Set ID window, first comms timeout).
+  powers up at 0 s (the start of any power-up window, the first comms timeout).
 - Polls follow a steady 1 ms schedule on that clock. After a stall (a slow machine,
   a paused process) the simulator polls once, covering the whole gap, and carries on one
   period from then: the motors integrate the real elapsed time and no burst of polls (or of
@@ -33,9 +33,9 @@ from typing import Final, Literal, TypeAlias, get_args
 
 import can
 
-from bridge.config import ProtocolName
+from bridge.escs import registry
 from bridge.sim.base import SimEsc
-from bridge.sim.motor import Battery, Motor, MotorParams
+from bridge.sim.motor import Battery, MotorParams
 
 __all__ = [
     "FAULT_KINDS",
@@ -291,8 +291,8 @@ class Simulator:
 
     def _emit(self, sender: SimEsc, frames: list[can.Message], now: float) -> None:
         """Send ``sender``'s frames, and let the other ESCs of this runner hear them as they
-        would on a real bus (the bus handle never returns our own frames): a CKESC refuses
-        Set ID while it hears another ESC. ESCs never answer each other, so their replies to
+        would on a real bus (the bus handle never returns our own frames): an ESC may refuse
+        set-up while it hears another ESC. ESCs never answer each other, so their replies to
         these are sent but not passed round again."""
         self._send(frames)
         for frame in frames:
@@ -319,24 +319,26 @@ SimBus = Simulator
 
 
 def make_escs(
-    protocol: ProtocolName,
+    protocol: str,
     n: int,
     ids: Sequence[int] | None = None,
     *,
     channels: Sequence[int] | None = None,
     motor_params: MotorParams | None = None,
 ) -> list[SimEsc]:
-    """``n`` simulated ESCs of ``protocol``, each with a motor of its own.
+    """``n`` simulated ESCs of the family ``protocol``, each with a motor of its own.
 
-    ``ids``: CKESC node IDs or FT ESC IDs (default 1..n). ``channels``: the CKESC throttle
-    channel of each (default 1..n; FT has none).
+    ``ids``: the ESCs' IDs on the bus (default 1..n). ``channels``: the throttle channel of
+    each, for a family that addresses ESCs by channel (default 1..n).
 
     Raises:
         ValueError: an unknown protocol, ``n`` < 1, lists whose length is not ``n``, IDs that
-            are not distinct or out of range (CKESC 1..125, FT 0..255), or channels for FT.
+            are not distinct or out of the family's range, or channels for a family without.
     """
-    if protocol not in ("ckesc", "ft"):
-        raise ValueError(f"protocol={protocol!r}: expected 'ckesc' or 'ft'")
+    if protocol not in registry.names():
+        raise ValueError(
+            f"protocol={protocol!r}: expected " + " or ".join(repr(n) for n in registry.names())
+        )
     if n < 1:
         raise ValueError(f"n={n!r}: expected at least one ESC")
     ids = list(range(1, n + 1)) if ids is None else list(ids)
@@ -344,21 +346,8 @@ def make_escs(
         raise ValueError(f"ids={ids!r}: {len(ids)} IDs for {n} ESCs")
     if len(set(ids)) != n:
         raise ValueError(f"ids={ids!r}: expected distinct IDs")
-    lowest, highest = (1, 125) if protocol == "ckesc" else (0, 255)
-    if not all(lowest <= i <= highest for i in ids):
-        raise ValueError(f"ids={ids!r}: {protocol} IDs must be {lowest}..{highest}")
-    if protocol == "ft":
-        if channels is not None:
-            raise ValueError("channels: FT ESCs have no throttle channel")
-        from bridge.sim.ft_sim import SimFt
-
-        return [SimFt(esc_id, motor=Motor(motor_params)) for esc_id in ids]
-    channels = list(range(1, n + 1)) if channels is None else list(channels)
-    if len(channels) != n:
-        raise ValueError(f"channels={channels!r}: {len(channels)} channels for {n} ESCs")
-    from bridge.sim.ckesc_sim import SimCkesc
-
-    return [
-        SimCkesc(node_id, channel, motor=Motor(motor_params))
-        for node_id, channel in zip(ids, channels, strict=True)
-    ]
+    family = registry.family(protocol)
+    allowed = family.node_ids
+    if not all(i in allowed for i in ids):
+        raise ValueError(f"ids={ids!r}: {protocol} IDs must be {allowed.start}..{allowed.stop - 1}")
+    return family.simulators(ids, channels, motor_params)

@@ -1,15 +1,18 @@
 """Per-ESC telemetry state: decoded frames in, one consistent snapshot per motor out.
 
-Pure bookkeeping, no I/O: the CAN reader feeds it decoded frames and codec errors with their
-receive times, the publishers (MAVLink, Zenoh, the monitor) take :class:`EscSnapshot` copies.
+Pure bookkeeping, no I/O: the CAN reader feeds it telemetry in the neutral record of
+:mod:`bridge.escs.family` (each ESC family maps its own frames into it), commands read back
+and codec errors, with their receive times; the publishers (MAVLink, Zenoh, the monitor) take
+:class:`EscSnapshot` copies.
 One lock guards it, held only for a few attribute updates, so neither side waits on the other.
 
-ESCs are keyed by motor: motor *n* (1-based, the mixer's output order) is the ESC whose node ID
-(CKESC) or ESC ID (FT) is the *n*-th entry of ``[escs] ids``.
+ESCs are keyed by motor: motor *n* (1-based, the mixer's output order) is the ESC whose ID
+on the bus is the *n*-th entry of ``[escs] ids``.
 
-Failure flags follow MAVLink's ESC_FAILURE_FLAGS; where they come from is the table
-:data:`CKESC_STATUS_FAILURES` plus the configured limits of :class:`TelemetryLimits`
-(README, "ESC telemetry").
+Failure flags follow MAVLink's ESC_FAILURE_FLAGS; where they come from is the ESC's status
+word (as its family maps it, :attr:`~bridge.escs.family.EscTelemetry.status_failures`), its
+fault counters, plus the configured limits of :class:`TelemetryLimits` (README, "ESC
+telemetry").
 """
 
 from __future__ import annotations
@@ -21,46 +24,23 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bridge.config import BridgeConfig
-from bridge.escs import AnyFrame, ckesc, ft
-
-# MAVLink ESC_FAILURE_FLAGS bits.
-FAILURE_NONE = 0
-FAILURE_OVER_CURRENT = 1
-FAILURE_OVER_VOLTAGE = 2
-FAILURE_OVER_TEMPERATURE = 4
-FAILURE_OVER_RPM = 8
-FAILURE_INCONSISTENT_CMD = 16
-FAILURE_MOTOR_STUCK = 32
-FAILURE_GENERIC = 64
-
-_S = ckesc.Msg1Status
-# CKESC MSG1 status bits -> ESC_FAILURE_FLAGS. MAVLink has no under-voltage, comms or self-test
-# bit: those are GENERIC (the ESC's raw status word is published beside the flags).
-CKESC_STATUS_FAILURES: tuple[tuple[int, int], ...] = (
-    (_S.OVER_CURRENT, FAILURE_OVER_CURRENT),
-    (_S.OVER_VOLTAGE, FAILURE_OVER_VOLTAGE),
-    (_S.OVER_TEMPERATURE, FAILURE_OVER_TEMPERATURE),
-    (_S.UNDER_VOLTAGE, FAILURE_GENERIC),
-    (_S.COMMS_FAULT, FAILURE_GENERIC),
-    (_S.SELF_TEST_ERRORS, FAILURE_GENERIC),
+from bridge.escs import registry
+from bridge.escs.family import (
+    FAILURE_GENERIC,
+    FAILURE_OVER_CURRENT,
+    FAILURE_OVER_RPM,
+    FAILURE_OVER_TEMPERATURE,
+    CommandSeen,
+    EscTelemetry,
 )
 
 _NS_PER_HOUR = 3_600_000_000_000
 ERROR_BURST_WINDOW_NS = 1_000_000_000  # CRC/format errors are counted per second for the flag
 
 
-def ckesc_failure_flags(status: int) -> int:
-    """ESC_FAILURE_FLAGS for a CKESC MSG1 status word."""
-    flags = 0
-    for bits, failure in CKESC_STATUS_FAILURES:
-        if status & bits:
-            flags |= failure
-    return flags
-
-
 @dataclass(frozen=True)
 class TelemetryLimits:
-    """Limits beyond which the bridge itself raises failure flags (FT reports no faults)."""
+    """Limits beyond which the bridge itself raises failure flags (whatever the ESC reports)."""
 
     max_temp_c: float | None = 100.0
     """Any reported temperature above this: OVER_TEMPERATURE."""
@@ -79,26 +59,27 @@ class EscSnapshot:
     motor: int
     """1-based motor (mixer output) number."""
     node_id: int
-    """CKESC node ID or FT ESC ID."""
+    """The ESC's ID on the bus (its family's node or ESC ID)."""
     online: bool
     """A frame arrived within the telemetry timeout."""
     age_ms: float | None
     """Time since the last frame from this ESC; None if none ever came."""
     rpm: int | None
-    """Mechanical rpm, negative when turning in reverse (FT erpm / pole pairs)."""
+    """Mechanical rpm, negative when turning in reverse (erpm / pole pairs for ESCs that
+    report erpm)."""
     voltage_v: float | None
     current_a: float | None
     """Supply (battery) current."""
     motor_current_a: float | None
-    """Phase current (FT only)."""
+    """Phase current, from ESCs that report it."""
     throttle: float | None
-    """The ESC's reported output: CKESC throttle / 2000, FT duty (-1..1)."""
+    """The ESC's reported output as a fraction (-1..1), as its family maps it."""
     mos_temp_c: float | None
     capacitor_temp_c: float | None
     motor_temp_c: float | None
     mcu_temp_c: float | None
     status: int | None
-    """CKESC MSG1 status word as received (FT has none)."""
+    """The ESC's status word as received (None from ESCs without one)."""
     failure_flags: int
     """MAVLink ESC_FAILURE_FLAGS."""
     frames: int
@@ -108,13 +89,13 @@ class EscSnapshot:
     consumed_mah: float
     """Charge drawn since start, integrated from current_a."""
     counters: dict[str, int] = field(default_factory=dict)
-    """Slow information the ESC reported (CKESC MSG_EXP8..10): power_on_count, start_count,
-    stop_count, total_run_time_s, run_time_s, self_test_fault, fault_code_2."""
+    """Slow information the ESC reported (counts, run times, fault codes), named by its
+    family."""
     command: float | None = None
     """The last command seen on the bus for this ESC (the bridge's own, read back)."""
     command_unit: str = ""
-    """What ``command`` is: throttle (CKESC 0..2000), current_a, current_fraction, duty, erpm,
-    brake_current_a, brake_fraction, position_deg, id_current_a."""
+    """What ``command`` is, named by the ESC's family: throttle, current_a, current_fraction,
+    duty, erpm, brake_current_a, brake_fraction, position_deg, id_current_a, ..."""
 
     @property
     def esc_temp_c(self) -> float | None:
@@ -175,6 +156,7 @@ class _Esc:
         "current_ns",
         "error_times",
         "errors",
+        "fault_counters",
         "frames",
         "last_ns",
         "mcu_temp_c",
@@ -187,6 +169,7 @@ class _Esc:
         "reported_faults",
         "rpm",
         "status",
+        "status_failures",
         "throttle",
         "voltage_v",
     )
@@ -207,12 +190,14 @@ class _Esc:
         self.motor_temp_c: float | None = None
         self.mcu_temp_c: float | None = None
         self.status: int | None = None
-        self.reported_faults = 0  # GENERIC from MSG_EXP9/10 fault codes
+        self.status_failures = 0  # what the status word raises, as the family maps it
+        self.reported_faults = 0  # GENERIC from the family's fault counters
         self.frames = 0
         self.errors = 0
         self.error_times: deque[int] = deque()
         self.consumed_mah = 0.0
         self.counters: dict[str, int] = {}
+        self.fault_counters: frozenset[str] = frozenset()  # counters that are fault codes
         self.command: float | None = None
         self.command_unit = ""
 
@@ -239,9 +224,9 @@ class EscTable:
         timeout_ms: int = 500,
         limits: TelemetryLimits | None = None,
     ) -> None:
-        """``node_ids[i]`` is the CKESC node / FT ESC ID of motor i + 1; ``pole_pairs`` is one
-        value for every motor or one per motor (used to turn FT erpm into rpm); ``channels[i]``
-        is the CKESC throttle channel of motor i + 1 (default i + 1), to read commands back.
+        """``node_ids[i]`` is the ESC ID of motor i + 1; ``pole_pairs`` is one value for every
+        motor or one per motor (used to turn erpm into rpm); ``channels[i]`` is the throttle
+        channel of motor i + 1 (default i + 1), to read back commands sent by channel.
 
         Raises:
             ValueError: ``pole_pairs`` has the wrong length or a value below 1.
@@ -259,7 +244,7 @@ class EscTable:
         channels = channels or range(1, len(node_ids) + 1)
         self._by_channel = {c: esc for c, esc in zip(channels, self._escs, strict=True)}
         self.node_set = frozenset(self._by_node)
-        """Our ESCs' IDs (for the CKESC decoder's foreign-node filter)."""
+        """Our ESCs' IDs (for decoders that refuse foreign nodes)."""
         self.unknown_frames = 0
         """Telemetry from an ID that is not one of ours."""
         self.unattributed_errors = 0
@@ -269,11 +254,11 @@ class EscTable:
     def for_config(cls, config: BridgeConfig) -> EscTable:
         """The ESCs of ``config`` (its ESC lists already sized by ``with_esc_count``), with
         its ``[telemetry]`` timeout, pole pairs and limits."""
-        telemetry, escs = config.telemetry, config.escs
+        telemetry, family = config.telemetry, registry.family(config.output.protocol)
         return cls(
-            escs.ids,
+            config.escs.ids,
             pole_pairs=telemetry.pole_pairs,
-            channels=escs.ckesc_channels if config.output.protocol == "ckesc" else None,
+            channels=family.channels(config),
             timeout_ms=telemetry.timeout_ms,
             limits=TelemetryLimits(
                 max_temp_c=telemetry.max_temp_c,
@@ -291,7 +276,7 @@ class EscTable:
         return len(self._escs)
 
     def remap(self, node_ids: Sequence[int]) -> None:
-        """Assign node IDs to motors anew (CKESC GET_ESC_ID learning); state is kept per motor.
+        """Assign node IDs to motors anew (learnt from the ESCs); state is kept per motor.
 
         Raises:
             ValueError: not one distinct ID per motor.
@@ -304,52 +289,31 @@ class EscTable:
             self._by_node = {esc.node_id: esc for esc in self._escs}
             self.node_set = frozenset(self._by_node)
 
-    def ingest(self, frame: AnyFrame, now_ns: int) -> bool:
-        """Take one decoded frame received at ``now_ns`` (monotonic). False if it is not
-        telemetry from one of our ESCs (commands, service traffic, other nodes)."""
-        message = frame.message
-        if isinstance(message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b):
-            self._note_throttles(message)
-            return False
-        if isinstance(frame, ft.FtFrame):
-            if not isinstance(message, ft.RealtimeData0 | ft.RealtimeData1 | ft.RealtimeData2):
-                self._note_ft_command(frame.node_id, message)
-                return False
-        elif not isinstance(message, _CKESC_TELEMETRY):
-            return False
+    def ingest(self, telemetry: EscTelemetry, now_ns: int) -> bool:
+        """Take one frame's telemetry received at ``now_ns`` (monotonic). False if it is not
+        from one of our ESCs."""
         with self._lock:
-            esc = self._by_node.get(frame.node_id)
+            esc = self._by_node.get(telemetry.node_id)
             if esc is None:
                 self.unknown_frames += 1
                 return False
-            self._apply(esc, message, now_ns)
+            self._apply(esc, telemetry, now_ns)
             esc.frames += 1
             esc.last_ns = now_ns
         return True
 
-    def _note_throttles(
-        self, message: ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
-    ) -> None:
-        if isinstance(message, ckesc.RawCommand12b):
-            first, scale = 4 * message.group - 3, 1
-        else:
-            # RawCommand_10b carries 0..1000, which the ESC doubles.
-            first, scale = 1, 2 if isinstance(message, ckesc.RawCommand10b) else 1
-        with self._lock:
-            for offset, throttle in enumerate(message.throttles):
-                esc = self._by_channel.get(first + offset)
-                if esc is not None:
-                    esc.command, esc.command_unit = float(throttle * scale), "throttle"
-
-    def _note_ft_command(self, esc_id: int, message: object) -> None:
-        unit_and_field = _FT_COMMAND_FIELDS.get(type(message))
-        if unit_and_field is None:
+    def note_commands(self, commands: Sequence[CommandSeen]) -> None:
+        """Take the commands read back from one frame (the ESC's last command)."""
+        if not commands:
             return
-        unit, name = unit_and_field
         with self._lock:
-            esc = self._by_node.get(esc_id)
-            if esc is not None:
-                esc.command, esc.command_unit = float(getattr(message, name)), unit
+            for seen in commands:
+                if seen.channel is not None:
+                    esc = self._by_channel.get(seen.channel)
+                else:
+                    esc = self._by_node.get(seen.node_id) if seen.node_id is not None else None
+                if esc is not None:
+                    esc.command, esc.command_unit = seen.value, seen.unit
 
     def count_error(self, node_id: int | None, now_ns: int) -> None:
         """Count a malformed frame (bad CRC, DLC, tail byte) from ``node_id`` (None: unknown)."""
@@ -371,57 +335,43 @@ class EscTable:
 
     # -- under the lock ---------------------------------------------------------------------
 
-    def _apply(self, esc: _Esc, message: object, now_ns: int) -> None:
-        if isinstance(message, ckesc.Msg1):
-            esc.rpm = message.speed_rpm
-            esc.throttle = message.throttle / ckesc.THROTTLE_MAX
-            esc.status = int(message.status)
-        elif isinstance(message, ckesc.Msg2):
-            esc.voltage_v = message.voltage_v
-            esc.set_current(message.current_a, now_ns, self._timeout_ns)
-            esc.mos_temp_c = message.mos_temp_c
-        elif isinstance(message, ckesc.Msg3 | ckesc.MsgExp11):
-            esc.mos_temp_c = message.mos_temp_c
-            esc.capacitor_temp_c = message.capacitor_temp_c
-            esc.motor_temp_c = message.motor_temp_c
-            esc.mcu_temp_c = message.mcu_temp_c
-        elif isinstance(message, ckesc.MsgExp1):
-            esc.rpm = message.speed_rpm
-            esc.voltage_v = message.voltage_v
-            esc.set_current(message.current_a, now_ns, self._timeout_ns)
-        elif isinstance(message, ckesc.MsgExp8):
-            esc.counters["power_on_count"] = message.power_on_count
-            esc.counters["start_count"] = message.start_count
-            esc.counters["stop_count"] = message.stop_count
-        elif isinstance(message, ckesc.MsgExp9):
-            esc.counters["total_run_time_s"] = message.total_run_time_s
-            esc.counters["self_test_fault"] = int(message.self_test_fault)
-        elif isinstance(message, ckesc.MsgExp10):
-            esc.counters["run_time_s"] = message.run_time_s
-            esc.counters["fault_code_2"] = message.fault_code_2
-        elif isinstance(message, ft.RealtimeData0):
-            esc.motor_current_a = message.motor_current_a
-            esc.set_current(message.battery_current_a, now_ns, self._timeout_ns)
-        elif isinstance(message, ft.RealtimeData1):
+    def _apply(self, esc: _Esc, t: EscTelemetry, now_ns: int) -> None:
+        if t.rpm is not None:
+            esc.rpm = t.rpm
+        elif t.erpm is not None:
             # int(x / p) truncates toward zero, so reverse rpm stays as large as forward rpm.
-            esc.rpm = int(message.erpm / esc.pole_pairs)
-            esc.throttle = message.duty
-        elif isinstance(message, ft.RealtimeData2):
-            esc.mos_temp_c = message.mosfet_temp_c
-            esc.motor_temp_c = message.motor_temp_c
-            esc.voltage_v = message.battery_voltage_v
-        # MSG_EXP2..6 (vendor debug), 7 (settings) and 12 (temperature records) count as
-        # frames received and keep the ESC online; their contents are not state.
-        if esc.counters.get("self_test_fault") or esc.counters.get("fault_code_2"):
+            esc.rpm = int(t.erpm / esc.pole_pairs)
+        if t.voltage_v is not None:
+            esc.voltage_v = t.voltage_v
+        if t.current_a is not None:
+            esc.set_current(t.current_a, now_ns, self._timeout_ns)
+        if t.motor_current_a is not None:
+            esc.motor_current_a = t.motor_current_a
+        if t.throttle is not None:
+            esc.throttle = t.throttle
+        if t.mos_temp_c is not None:
+            esc.mos_temp_c = t.mos_temp_c
+        if t.capacitor_temp_c is not None:
+            esc.capacitor_temp_c = t.capacitor_temp_c
+        if t.motor_temp_c is not None:
+            esc.motor_temp_c = t.motor_temp_c
+        if t.mcu_temp_c is not None:
+            esc.mcu_temp_c = t.mcu_temp_c
+        if t.status is not None:
+            esc.status = t.status
+            esc.status_failures = t.status_failures or 0
+        if t.counters:
+            esc.counters.update(t.counters)
+            esc.fault_counters |= t.fault_counters
+        counters = esc.counters
+        if any(counters.get(name) for name in esc.fault_counters):
             esc.reported_faults = FAILURE_GENERIC
         else:
             esc.reported_faults = 0
 
     def _failure_flags(self, esc: _Esc, now_ns: int) -> int:
         limits = self._limits
-        flags = esc.reported_faults
-        if esc.status is not None:
-            flags |= ckesc_failure_flags(esc.status)
+        flags = esc.reported_faults | esc.status_failures
         if limits.max_temp_c is not None:
             temps = (esc.mos_temp_c, esc.capacitor_temp_c, esc.motor_temp_c, esc.mcu_temp_c)
             if any(t is not None and t > limits.max_temp_c for t in temps):
@@ -464,34 +414,3 @@ class EscTable:
             command=esc.command,
             command_unit=esc.command_unit,
         )
-
-
-_CKESC_TELEMETRY = (
-    ckesc.Msg1,
-    ckesc.Msg2,
-    ckesc.Msg3,
-    ckesc.MsgExp1,
-    ckesc.MsgExp2,
-    ckesc.MsgExp3,
-    ckesc.MsgExp4,
-    ckesc.MsgExp5,
-    ckesc.MsgExp6,
-    ckesc.MsgExp7,
-    ckesc.MsgExp8,
-    ckesc.MsgExp9,
-    ckesc.MsgExp10,
-    ckesc.MsgExp11,
-    ckesc.MsgExp12,
-)
-
-# FT command records -> (command_unit, the record's value field).
-_FT_COMMAND_FIELDS: dict[type, tuple[str, str]] = {
-    ft.SetCurrent: ("current_a", "current_a"),
-    ft.SetCurrentBrake: ("brake_current_a", "current_a"),
-    ft.SetDuty: ("duty", "duty"),
-    ft.SetCurrentPercent: ("current_fraction", "fraction"),
-    ft.SetCurrentBrakePercent: ("brake_fraction", "fraction"),
-    ft.SetErpm: ("erpm", "erpm"),
-    ft.SetPosition: ("position_deg", "angle_deg"),
-    ft.SetIdCurrent: ("id_current_a", "current_a"),
-}

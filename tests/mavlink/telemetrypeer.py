@@ -1,8 +1,8 @@
 """Shared by the ESC telemetry tests: end to end on 127.0.0.1 (free ports per test, no mocks).
 
-Real CAN frames are built with the vendor encoders, decoded with ``bridge.escs.decode`` and
-ingested into a real :class:`EscTable`; a real :class:`MavlinkLink` and
-:class:`MavlinkTelemetry` send what the table holds to a ground station played by a UDP socket
+Real CAN frames are built with the vendor encoders, decoded through their family
+(``bridge.escs.registry``) and ingested into a real :class:`EscTable`; a real
+:class:`MavlinkLink` and :class:`MavlinkTelemetry` send what the table holds to a ground station played by a UDP socket
 that decodes with the project's dialect (the stock one lacks ESC_INFO and ESC_STATUS). The
 expected wire values are worked out here from the frames' inputs, not from the table.
 
@@ -23,7 +23,7 @@ import can
 import pytest
 
 from bridge.config import MavlinkConfig
-from bridge.escs import ckesc, decode, ft
+from bridge.escs import ckesc, ft, registry
 from bridge.mavlink import load_dialect
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
@@ -158,9 +158,13 @@ class Expected:
 
 
 def ingest(table: EscTable, msg: can.Message, now_ns: int) -> None:
-    frame = decode(msg)
+    family = registry.family_of(msg.arbitration_id)
+    assert family is not None
+    frame = family.decode(msg)
     assert frame is not None
-    assert table.ingest(frame, now_ns)
+    telemetry = family.telemetry(frame)
+    assert telemetry is not None
+    assert table.ingest(telemetry, now_ns)
 
 
 def feed(table: EscTable, i: int, now_ns: int) -> Expected:

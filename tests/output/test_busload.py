@@ -8,7 +8,8 @@ import pytest
 from bridge import preflight
 from bridge.config import build_config, with_esc_count
 from bridge.errors import ConfigError
-from bridge.output.busload import bus_load, frame_bits
+from bridge.escs.family import frame_bits
+from bridge.output.busload import bus_load
 
 
 def test_bus_load_above_ceiling_is_refused_with_numbers() -> None:

@@ -17,7 +17,7 @@ from conftest import Autopilot, free_port
 from bridge.autopilot_input import InputSetup
 from bridge.config import build_config
 from bridge.escs import ckesc
-from bridge.escs.drivers import CkescDriver
+from bridge.escs.ckesc.driver import CkescDriver
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.output_loop import CommandSelector, LoopSetup, OutputLoop
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits

@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
 from bridge.escs import ckesc
-from bridge.escs.drivers import CkescDriver
+from bridge.escs.ckesc.driver import CkescDriver
 from bridge.output.mailbox import MotorTest
 from bridge.output.output_loop import CommandSelector
 from bridge.output.safety import ControlInputs, SafetyLimits

@@ -40,7 +40,7 @@ def bus_args(can_port: int) -> list[str]:
 
 
 def simulator(can_port: int, protocol: str, ids: list[int]) -> Simulator:
-    escs = make_escs(protocol, len(ids), ids)  # type: ignore[arg-type]
+    escs = make_escs(protocol, len(ids), ids)
     return Simulator(multicast_bus(can_port), escs, own_bus=True).start()
 
 

@@ -144,7 +144,7 @@ def test_outputs_at_refuses_nonsense() -> None:
 def test_the_bridge_configuration_is_valid_and_fits_the_bus(
     protocol: str, airframe: Airframe
 ) -> None:
-    options = DemoOptions(protocol=protocol, airframe=airframe)  # type: ignore[arg-type]
+    options = DemoOptions(protocol=protocol, airframe=airframe)
     ports = DemoPorts(14550, 43113, 7447)
     written = tomllib.loads(toml_text(bridge_settings(options, ports)))
     config = build_config(written, "demo.toml")

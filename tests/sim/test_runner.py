@@ -19,9 +19,9 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, Daemon, free_port, multicast_b
 from bridge.cli import main
 from bridge.errors import CrcError
 from bridge.escs import ckesc, ft
+from bridge.escs.ckesc.sim import SimCkesc
+from bridge.escs.ft.sim import SimFt
 from bridge.sim.base import SimEsc
-from bridge.sim.ckesc_sim import SimCkesc
-from bridge.sim.ft_sim import SimFt
 from bridge.sim.motor import Battery
 from bridge.sim.runner import FAULT_KINDS, ScheduledFault, Simulator, make_escs
 
@@ -240,7 +240,7 @@ def test_make_escs_defaults_and_checks() -> None:
         (lambda: make_escs("ckesc", 1, [126]), "1..125"),
         (lambda: make_escs("ckesc", 2, channels=[1]), "1 channels for 2"),
         (lambda: make_escs("ft", 1, channels=[1]), "no throttle channel"),
-        (lambda: make_escs("vesc", 1), "'ckesc' or 'ft'"),  # type: ignore[arg-type]
+        (lambda: make_escs("vesc", 1), "'ckesc' or 'ft'"),
     ]
     for call, match in bad:
         with pytest.raises(ValueError, match=match):

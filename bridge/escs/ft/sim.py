@@ -93,7 +93,7 @@ OVER_CURRENT_A: Final = 5000.0
 # land exactly on 10 ms or 450 ms.
 _EPS_S: Final = 1e-9
 
-# Wire field limits of the telemetry values (bridge/escs/ft.py): i24 and i16 at their scales.
+# Wire field limits of the telemetry values (bridge/escs/ft/): i24 and i16 at their scales.
 _I24_MAX: Final = (1 << 23) - 1
 _CURRENT_MAX_A: Final = _I24_MAX / 1000
 _DUTY_MAX: Final = _I24_MAX / 1000

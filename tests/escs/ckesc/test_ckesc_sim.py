@@ -70,7 +70,7 @@ from bridge.escs.ckesc import (
     ThrottleSelectResponse,
     ThrottleSource,
 )
-from bridge.sim.ckesc_sim import ESC_INFO, ReportMode, SimCkesc, default_flash
+from bridge.escs.ckesc.sim import ESC_INFO, ReportMode, SimCkesc, default_flash
 
 R = TypeVar("R")
 FULL_V = 16.8  # a full 4S pack

@@ -41,24 +41,18 @@ Decisions where the spec is silent
 
 from __future__ import annotations
 
-import logging
 import math
-import time
 from collections import Counter
-from collections.abc import Callable, Collection, Iterable
-from dataclasses import dataclass
-from typing import Final, TypeVar, cast
+from collections.abc import Sequence
+from typing import cast
 
 import can
 
 from bridge.errors import (
-    CodecError,
     LinkError,
     NoAnswerError,
-    RefusedError,
     SetupError,
     ValueRangeError,
-    WrongNodeError,
 )
 from bridge.escs import ckesc
 from bridge.escs.ckesc import (
@@ -74,8 +68,6 @@ from bridge.escs.ckesc import (
     GetEscIdAnswer,
     GetEscIdRequest,
     LedColor,
-    Maintenance0Response,
-    Maintenance1Response,
     Maintenance2Response,
     MaintenanceRequest,
     MajorConfigRequest,
@@ -83,9 +75,7 @@ from bridge.escs.ckesc import (
     MsgControlAck,
     MsgControlCommand,
     MsgControlRequest,
-    MsgExp12,
     Rotation,
-    SelfTestFault,
     SelfTestRequest,
     SelfTestResponse,
     SetBaudRequest,
@@ -102,10 +92,37 @@ from bridge.escs.ckesc import (
     ThrottleSelectResponse,
     ThrottleSource,
 )
+from bridge.escs.ckesc._setup_common import (
+    _EXPAND_EFFECTS,
+    _MAINTENANCE_RESPONSES,
+    _NO_ANSWER_HELP,
+    _R,
+    _SET_ID_HELP,
+    ANSWER_WINDOW_S,
+    DEFAULT_TIMEOUT_S,
+    LEARN_WINDOW_S,
+    LED_COLOR_NAMES,
+    SERVICE_NAMES,
+    SET_ID_WINDOW_S,
+    CanTestResult,
+    ExpandResult,
+    MaintenanceResponse,
+    ReportsResult,
+    ScannedEsc,
+    SelfTestResult,
+    SetIdResult,
+    _check_node,
+    _nodes,
+    led_color_name,
+    scan_warnings,
+    value_name,
+)
+from bridge.escs.ckesc._setup_link import ServiceLink
 
 __all__ = [
     "ANSWER_WINDOW_S",
     "DEFAULT_TIMEOUT_S",
+    "LEARN_WINDOW_S",
     "LED_COLOR_NAMES",
     "SERVICE_NAMES",
     "SET_ID_WINDOW_S",
@@ -117,234 +134,14 @@ __all__ = [
     "ScannedEsc",
     "SelfTestResult",
     "SetIdResult",
+    "learn_node_ids",
     "led_color_name",
     "scan_warnings",
     "value_name",
 ]
 
-log = logging.getLogger(__name__)
 
-DEFAULT_TIMEOUT_S: Final = 0.5
-"""How long a request waits for its answer."""
-ANSWER_WINDOW_S: Final = 0.064
-"""GET_ESC_ID answers and MSGControl acks come (node_id % 32) x 2 ms late: within 64 ms."""
-SET_ID_WINDOW_S: Final = 120
-"""An ESC takes Set ID and Set Baud only this long after power-up (seed 4.3.2)."""
-COUNTER_MODULUS: Final = 1 << 32
-"""The CANTest counter is a u32 that wraps."""
-_DRAIN_LIMIT: Final = 100_000
-"""At most this many queued frames are dropped before a request (a flooded bus never ends)."""
-
-SERVICE_NAMES: Final[dict[int, str]] = {
-    ckesc.SERVICE_SET_ID: "Set ID",
-    ckesc.SERVICE_SET_BAUD: "Set Baud",
-    ckesc.SERVICE_SET_LED: "Set LED",
-    ckesc.SERVICE_SET_ROTATION: "Set Rotation",
-    ckesc.SERVICE_SET_FREQ: "Set/Get Freq",
-    ckesc.SERVICE_THROTTLE_SELECT: "Throttle Select",
-    ckesc.SERVICE_SELF_TEST: "Self Test",
-    ckesc.SERVICE_EXPAND_SET: "Expand Set",
-    ckesc.SERVICE_ESC_INFO: "ESC Information",
-    ckesc.SERVICE_MAINTENANCE: "Maintenance Information",
-    ckesc.SERVICE_MAJOR_CONFIG: "Get Major Configuration",
-}
-"""The seed's name of each service type the client uses, for messages."""
-
-_SET_ID_HELP: Final = (
-    "an ESC takes Set ID only within 120 s of its power-up and only while no other ESC is "
-    "on the bus: connect this ESC alone, switch its power off and on, and run set-id within "
-    "2 minutes"
-)
-_CONDITIONS: Final[dict[int, str]] = {
-    ckesc.SERVICE_SET_ID: _SET_ID_HELP,
-    ckesc.SERVICE_SET_BAUD: "an ESC takes Set Baud only within 120 s of its power-up: switch "
-    "its power off and on and set the bit rate within 2 minutes",
-    ckesc.SERVICE_SET_LED: "an ESC takes Set LED only while its reports are on (MSGControl resume)",
-    ckesc.SERVICE_SET_ROTATION: "an ESC takes Set Rotation only with the motor stopped and its "
-    "reports on (MSGControl resume)",
-    ckesc.SERVICE_SET_FREQ: "intervals must be 20..500 ms, even",
-    ckesc.SERVICE_THROTTLE_SELECT: "an ESC takes Throttle Select only at zero throttle",
-    ckesc.SERVICE_EXPAND_SET: "an ESC takes Expand Set only with the motor stopped, and may "
-    "not support every part",
-}
-_NO_ANSWER_HELP: Final = (
-    "is the ESC powered and wired (CAN H/L, 120 ohm at both ends), and does the bus run at the "
-    "ESC's bit rate (500 kbit/s from the factory)?"
-)
-
-_R = TypeVar("_R")
-
-LED_COLOR_NAMES: Final[dict[int, str]] = {
-    0: "off",
-    int(LedColor.BLUE): "blue",
-    int(LedColor.GREEN): "green",
-    int(LedColor.GREEN | LedColor.BLUE): "cyan",
-    int(LedColor.RED): "red",
-    int(LedColor.RED | LedColor.BLUE): "magenta",
-    int(LedColor.RED | LedColor.GREEN): "yellow",
-    int(LedColor.RED | LedColor.GREEN | LedColor.BLUE): "white",
-}
-"""Set LED's colour bits by name."""
-
-MaintenanceResponse = Maintenance0Response | Maintenance1Response | Maintenance2Response
-_MAINTENANCE_RESPONSES: Final[dict[int, type[MaintenanceResponse]]] = {
-    0: Maintenance0Response,
-    1: Maintenance1Response,
-    2: Maintenance2Response,
-}
-
-# What Get Major Configuration shows of an Expand Set: command -> part -> (field, value).
-_EXPAND_EFFECTS: Final[dict[int, dict[int, tuple[str, object]]]] = {
-    ExpandSetCommand.DIRECTION: {1: ("direction_reversed", False), 2: ("direction_reversed", True)},
-    ExpandSetCommand.LED: {
-        0: ("led_color", LedColor(0)),
-        1: ("led_color", LedColor.RED),
-        2: ("led_color", LedColor.GREEN),
-        3: ("led_color", LedColor.BLUE),
-    },
-    ExpandSetCommand.THROTTLE_INTERFACE: {
-        2: ("throttle_source", ThrottleSource.PWM_AND_CAN),
-        3: ("throttle_source", ThrottleSource.CAN),
-    },
-}
-_TEMP_RECORDS: Final = 4
-"""READ_TEMP_RECORD: the ESC sends MCU, MOS, capacitor and motor records."""
-
-
-# --------------------------------------------------------------------------------------------
-# Results
-
-
-@dataclass(frozen=True, slots=True)
-class ScannedEsc:
-    """One GET_ESC_ID answer, with the ESC's information (240) and major configuration (242).
-
-    ``problem`` says why ``info`` or ``config`` is missing (no answer, a shared node ID).
-    """
-
-    node_id: int
-    throttle_channel: int
-    info: EscInfoResponse | None = None
-    config: MajorConfigResponse | None = None
-    problem: str | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class SetIdResult:
-    """A Set ID the ESC took: its node ID and channel before and now (saved in its flash)."""
-
-    old_node_id: int
-    old_throttle_channel: int
-    node_id: int
-    throttle_channel: int
-
-
-@dataclass(frozen=True, slots=True)
-class SelfTestResult:
-    """Self Test's answer; for a failed test, fault code 1 from Maintenance option 2 (None when
-    the ESC did not give it)."""
-
-    node_id: int
-    passed: bool
-    fault: SelfTestFault | int | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class ExpandResult:
-    """An Expand Set sent to ``node_id``.
-
-    ``confirmed``: True when Get Major Configuration shows the new setting, None when nothing
-    on the bus can show it (the motor's beep is the only sign). ``temp_records``: the MSG_EXP12
-    records that answered READ_TEMP_RECORD.
-    """
-
-    node_id: int
-    command: ExpandSetCommand
-    part: int
-    confirmed: bool | None
-    temp_records: tuple[MsgExp12, ...] = ()
-
-
-@dataclass(frozen=True, slots=True)
-class ReportsResult:
-    """A MSGControl command and the nodes that acknowledged it."""
-
-    command: MsgControlCommand
-    acked_by: tuple[int, ...]
-
-
-@dataclass(frozen=True, slots=True)
-class CanTestResult:
-    """CANTest reports of one ESC over ``duration_s``, counted against their counter."""
-
-    node_id: int
-    received: int
-    first_count: int
-    last_count: int
-    duration_s: float
-
-    @property
-    def expected(self) -> int:
-        """Reports the counter says were sent from the first received to the last."""
-        return (self.last_count - self.first_count) % COUNTER_MODULUS + 1
-
-    @property
-    def lost(self) -> int:
-        """Reports missing between the first and the last received."""
-        return max(0, self.expected - self.received)
-
-
-def scan_warnings(escs: Collection[ScannedEsc]) -> list[str]:
-    """What a scan shows that needs fixing before flight: shared node IDs, shared throttle
-    channels, ESCs still at the factory node ID (which send no telemetry)."""
-    warnings = []
-    by_node = Counter(esc.node_id for esc in escs)
-    for node, count in sorted(by_node.items()):
-        if count > 1:
-            warnings.append(
-                f"{count} ESCs answered as node {node}: connect them one at a time and give "
-                "each its own node ID (set-id)"
-            )
-    channels: dict[int, set[int]] = {}
-    for esc in escs:
-        channels.setdefault(esc.throttle_channel, set()).add(esc.node_id)
-    for channel, nodes in sorted(channels.items()):
-        if len(nodes) > 1:
-            listed = ", ".join(map(str, sorted(nodes)))
-            warnings.append(
-                f"nodes {listed} all follow throttle channel {channel}: they would spin "
-                "together; give each its own channel (set-id)"
-            )
-    if ckesc.FACTORY_NODE_ID in by_node:
-        warnings.append(
-            f"node {ckesc.FACTORY_NODE_ID} is the factory node ID: such an ESC sends no "
-            "telemetry; give it a node ID of its own (set-id)"
-        )
-    return warnings
-
-
-# --------------------------------------------------------------------------------------------
-# The client
-
-
-def _check_node(node_id: object) -> int:
-    if isinstance(node_id, int) and 1 <= node_id <= ckesc.MAX_NODE_ID:
-        return node_id
-    raise ValueRangeError(
-        f"node = {node_id!r} is not in 1..{ckesc.MAX_NODE_ID} (0 is the host, "
-        f"{ckesc.MAX_NODE_ID + 1} and {ckesc.MAX_NODE_ID + 2} are reserved)"
-    )
-
-
-def _service_label(service_type: int) -> str:
-    return f"{SERVICE_NAMES.get(service_type, 'service')} ({service_type})"
-
-
-def _nodes(nodes: Iterable[int]) -> str:
-    return ", ".join(map(str, sorted(nodes)))
-
-
-class CkescClient:
+class CkescClient(ServiceLink):
     """Requests to CKESC ESCs on ``bus`` from the host, each answer awaited for ``timeout_s``.
 
     The bus stays the caller's (the client never shuts it down); use one client per bus, so
@@ -373,8 +170,9 @@ class CkescClient:
 
     # -- discovery --------------------------------------------------------------------------
 
-    def find_escs(self) -> list[GetEscIdAnswer]:
-        """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice).
+    def find_escs(self, window_s: float | None = None) -> list[GetEscIdAnswer]:
+        """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice),
+        read for ``window_s`` (default: :data:`ANSWER_WINDOW_S` and the timeout).
 
         Raises:
             LinkError: the bus failed.
@@ -383,7 +181,7 @@ class CkescClient:
         self._drain()
         self._send(request, "GET_ESC_ID")
         frames = self._collect(
-            ANSWER_WINDOW_S + self.timeout_s,
+            ANSWER_WINDOW_S + self.timeout_s if window_s is None else window_s,
             lambda frame: isinstance(frame.message, GetEscIdAnswer),
         )
         return [frame.message for frame in frames if isinstance(frame.message, GetEscIdAnswer)]
@@ -758,155 +556,26 @@ class CkescClient:
             )
         return results
 
-    # -- the wire ---------------------------------------------------------------------------
 
-    def _service_frame(self, node_id: int, message: CkescMessage) -> tuple[can.Message, int]:
-        """``message`` to ``node_id``, encoded (checked) with the next transfer ID of its type."""
-        _check_node(node_id)
-        transfer_id = self._tids.next(ckesc.type_id_of(message))
-        frame = CkescFrame(
-            ckesc.default_priority(message), self.host_node, node_id, transfer_id, message
-        )
-        return ckesc.encode(frame), transfer_id
+def learn_node_ids(
+    bus: can.BusABC, channels: Sequence[int], window_s: float = LEARN_WINDOW_S
+) -> dict[int, int]:
+    """Ask every CKESC on ``bus`` for its node ID (GET_ESC_ID) and map motors to node IDs:
+    ``{i: node_id}`` for each answering ESC that follows throttle channel ``channels[i]``.
 
-    def _broadcast(self, message: CkescMessage) -> can.Message:
-        """A host broadcast (from node 0, as the codec requires), encoded."""
-        transfer_id = self._tids.next(ckesc.type_id_of(message))
-        frame = CkescFrame(
-            ckesc.default_priority(message), ckesc.HOST_NODE_ID, None, transfer_id, message
-        )
-        return ckesc.encode(frame)
-
-    def _ask(
-        self,
-        msg: can.Message,
-        transfer_id: int,
-        node_id: int,
-        sources: Collection[int],
-        response_type: type[_R] | tuple[type[_R], ...],
-    ) -> _R:
-        """Send the request ``msg`` to ``node_id`` and wait for its response from one of
-        ``sources``."""
-        service_type = msg.arbitration_id >> 16 & 0xFF
-        label = _service_label(service_type)
-        # A response's CAN ID but for its priority and source.
-        wanted = service_type << 16 | self.host_node << 8 | 0x80
-        self._drain()
-        self._send(msg, f"{label} request to node {node_id}")
-        deadline = time.monotonic() + self.timeout_s
-        others: set[int] = set()
-        problems: list[str] = []
-        while (left := deadline - time.monotonic()) > 0:
-            reply = self._recv(left)
-            if reply is None:
-                break
-            can_id = reply.arbitration_id
-            if not reply.is_extended_id or can_id & 0x00FFFF80 != wanted:
-                continue
-            source = can_id & 0x7F
-            try:
-                frame = ckesc.decode(reply)
-            except CodecError as exc:
-                problems.append(f"a malformed answer from node {source} ({exc})")
-                continue
-            if frame is None or frame.transfer_id != transfer_id:
-                continue  # an answer to an earlier request
-            if source not in sources:
-                others.add(source)
-            elif isinstance(frame.message, response_type):
-                return frame.message
-            else:
-                problems.append(
-                    f"node {source} answered with {type(frame.message).__name__} instead"
-                )
-        text = f"node {node_id} did not answer {label} within {self.timeout_s:g} s"
-        if problems:
-            text += "; " + "; ".join(problems)
-        if others:
-            raise WrongNodeError(
-                f"{text}; node(s) {_nodes(others)} answered it instead: a wrong node ID, or "
-                "two ESCs on one ID?"
+    Raises:
+        LinkError: two ESCs answer with the same throttle channel (they would spin together),
+            or the bus failed.
+    """
+    found: dict[int, int] = {}
+    for answer in CkescClient(bus, timeout_s=window_s).find_escs(window_s):
+        if answer.throttle_channel not in channels:
+            continue
+        other = found.get(answer.throttle_channel)
+        if other is not None and other != answer.node_id:
+            raise LinkError(
+                f"CKESC nodes {other} and {answer.node_id} both follow throttle channel "
+                f"{answer.throttle_channel}; give each ESC its own channel (Set ID)"
             )
-        raise NoAnswerError(f"{text}; {_NO_ANSWER_HELP}")
-
-    def _refused(self, service_type: int, node_id: int, asked: str, kept: str) -> None:
-        condition = _CONDITIONS.get(service_type, "")
-        raise RefusedError(
-            f"node {node_id} refused {_service_label(service_type)}: asked {asked}, in effect "
-            f"{kept}" + (f"; {condition}" if condition else "")
-        )
-
-    def _temp_records(self, node_id: int) -> tuple[MsgExp12, ...]:
-        frames = self._collect(
-            self.timeout_s,
-            lambda frame: isinstance(frame.message, MsgExp12) and frame.source_node == node_id,
-            until=_TEMP_RECORDS,
-        )
-        records = tuple(frame.message for frame in frames if isinstance(frame.message, MsgExp12))
-        if not records:
-            raise NoAnswerError(
-                f"node {node_id} sent no temperature record (MSG_EXP12) within "
-                f"{self.timeout_s:g} s of Expand Set READ_TEMP_RECORD"
-            )
-        return records
-
-    def _collect(
-        self,
-        window_s: float,
-        accept: Callable[[CkescFrame], bool],
-        until: int | None = None,
-    ) -> list[CkescFrame]:
-        """The ESC frames (source node not 0) ``accept`` takes, read for ``window_s`` (or
-        until there are ``until`` of them)."""
-        deadline = time.monotonic() + window_s
-        out: list[CkescFrame] = []
-        while (left := deadline - time.monotonic()) > 0:
-            msg = self._recv(left)
-            if msg is None:
-                break
-            try:
-                frame = ckesc.decode(msg)
-            except CodecError:
-                continue
-            if frame is not None and frame.source_node != ckesc.HOST_NODE_ID and accept(frame):
-                out.append(frame)
-                if until is not None and len(out) >= until:
-                    break
-        return out
-
-    def _drain(self) -> None:
-        for _ in range(_DRAIN_LIMIT):
-            if self._recv(0.0) is None:
-                return
-
-    def _send(self, msg: can.Message, what: str) -> None:
-        try:
-            self.bus.send(msg, timeout=self.timeout_s)
-        except (can.CanError, OSError) as exc:
-            raise LinkError(f"cannot send {what} on the CAN bus: {exc}") from exc
-        log.debug("sent %s: %08X %s", what, msg.arbitration_id, msg.data.hex(" "))
-
-    def _recv(self, timeout_s: float) -> can.Message | None:
-        try:
-            msg: can.Message | None = self.bus.recv(timeout_s)
-        except (can.CanError, OSError) as exc:
-            raise LinkError(f"cannot read the CAN bus: {exc}") from exc
-        return msg
-
-
-def led_color_name(color: LedColor | int) -> str:
-    """ "red", "cyan", "off", ...: the name of an RGB combination (a number if not 0..7)."""
-    return LED_COLOR_NAMES.get(int(color), str(int(color)))
-
-
-def value_name(value: object) -> str:
-    """A value as ``esc-bridge esc`` spells it: "reversed", "pwm-can", "phase-a-high", "cyan",
-    "yes"; anything else as it prints."""
-    if isinstance(value, LedColor):
-        return led_color_name(value)
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if value == ThrottleSource.PWM_AND_CAN and isinstance(value, ThrottleSource):
-        return "pwm-can"
-    name = getattr(value, "name", None)
-    return name.lower().replace("_", "-") if isinstance(name, str) else str(value)
+        found[answer.throttle_channel] = answer.node_id
+    return {i: found[channel] for i, channel in enumerate(channels) if channel in found}

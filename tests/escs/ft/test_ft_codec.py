@@ -1,4 +1,4 @@
-"""Tests for the Flipsky FT codec (bridge/escs/ft.py) against PROTOCOLS.md §2.
+"""Tests for the Flipsky FT codec (bridge/escs/ft/) against PROTOCOLS.md §2.
 
 Expected bytes are built here independently of the codec: ``struct`` for the fields and the
 ``crc`` package (bit-by-bit, not table-driven) for CRC-16/MODBUS.

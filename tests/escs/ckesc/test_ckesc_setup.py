@@ -1,4 +1,4 @@
-"""The CKESC set-up client (bridge/esc_setup.py) against simulated ESCs on a ``virtual`` bus,
+"""The CKESC set-up client (bridge/escs/ckesc/setup.py) against simulated ESCs on a ``virtual`` bus,
 plus a raw python-can peer for answers no well-behaved ESC gives (wrong node, malformed)."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import can
 import pytest
 
 from bridge.errors import LinkError, NoAnswerError, RefusedError, SetupError, WrongNodeError
-from bridge.esc_setup import CanTestResult, CkescClient, ScannedEsc, scan_warnings
 from bridge.escs import ckesc
 from bridge.escs.ckesc import CkescFrame, Rotation, ThrottleSource
-from bridge.sim.ckesc_sim import ESC_INFO, SimCkesc
+from bridge.escs.ckesc.setup import CanTestResult, CkescClient, ScannedEsc, scan_warnings
+from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc
 from bridge.sim.runner import Simulator
 
 _channels = itertools.count()

@@ -1,4 +1,4 @@
-"""The simulated FT ESC (bridge/sim/ft_sim.py), driven with real encoded commands and an
+"""The simulated FT ESC (bridge/escs/ft/sim.py), driven with real encoded commands and an
 explicit clock: every command kind with and without CRC, bad frames, the 10 ms telemetry
 cadence, the motor's lag, the 450 ms command timeout and each fault."""
 
@@ -32,7 +32,7 @@ from bridge.escs.ft import (
     decode,
     encode,
 )
-from bridge.sim.ft_sim import OVER_CURRENT_A, OVER_TEMPERATURE_C, SimFt
+from bridge.escs.ft.sim import OVER_CURRENT_A, OVER_TEMPERATURE_C, SimFt
 from bridge.sim.motor import Motor, MotorParams
 
 ESC = 3

@@ -22,7 +22,7 @@ from conftest import ESC_BRIDGE, Daemon, can_args, free_port
 from bridge.cli import main
 from bridge.escs import ckesc
 from bridge.escs.ckesc import LedColor, SelfTestFault, ThrottleSource
-from bridge.sim.ckesc_sim import ESC_INFO, SimCkesc, default_flash
+from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc, default_flash
 from bridge.sim.runner import Simulator
 
 _channels = itertools.count()
