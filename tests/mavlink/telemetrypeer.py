@@ -2,9 +2,10 @@
 
 Real CAN frames are built with the vendor encoders, decoded through their family
 (``bridge.escs.registry``) and ingested into a real :class:`EscTable`; a real
-:class:`MavlinkLink` and :class:`MavlinkTelemetry` send what the table holds to a ground station played by a UDP socket
-that decodes with the project's dialect (the stock one lacks ESC_INFO and ESC_STATUS). The
-expected wire values are worked out here from the frames' inputs, not from the table.
+:class:`MavlinkLink` and :class:`MavlinkTelemetry` send what the table holds to a ground station
+played by a UDP socket that decodes with the project's dialect (the stock one lacks ESC_INFO and
+ESC_STATUS). The expected wire values are worked out here from the frames' inputs, not from the
+table.
 
 The test modules take the fixture with ``make_bridge = telemetrypeer.make_bridge``.
 """
