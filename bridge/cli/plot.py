@@ -24,7 +24,7 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--record DIR`): per ESC, its command against its rpm, current, voltage and "
         "temperatures over time, with the autopilot's arming, the bridge's failsafes and motor "
         "tests shaded and the ESC's failure flags marked, plus an overview of every ESC and an "
-        "HTML page of them all. Writes into DIR/<recording>-plot/ and prints what it wrote. "
+        "HTML page of them all, into RECORDING_DIR/<recording>-plot/ (or --out). "
         "Needs matplotlib (pip install 'esc-bridge[plot]').",
     )
     plot.add_argument(

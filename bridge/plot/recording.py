@@ -21,7 +21,6 @@ NAME_PREFIX: Final = "esc-bridge-"
 """Every recording's files start so (:data:`bridge.record.NAME_FORMAT`)."""
 LOG_SUFFIX: Final = ".log"
 TLOG_SUFFIX: Final = ".tlog"
-SEVERITY_CRITICAL: Final = 2
 MAV_AUTOPILOT_INVALID: Final = 8
 """The ``autopilot`` of a HEARTBEAT from no flight stack: the bridge's own, a ground station's."""
 MAV_MODE_FLAG_SAFETY_ARMED: Final = 0x80

@@ -31,6 +31,8 @@ shown; within an armed span every stop is shown, however short."""
 STATE_PREFIX: Final = "ESC out: "
 """How the bridge's STATUSTEXTs about its output state begin (``bridge.daemon.STATE_REPORTS``)."""
 SEVERITY_CRITICAL: Final = 2
+"""MAV_SEVERITY_CRITICAL: the bridge's failsafe states are reported so."""
+
 # Span kinds.
 ARMED: Final = "armed"
 FAILSAFE: Final = "failsafe"
