@@ -196,7 +196,7 @@ def draw_esc(flight: Flight, esc: EscSeries) -> Figure:
     command_ax.set_ylabel("command (" + ", ".join(units or ["none read back"]) + ")")
     handles = [*rpm_ax.get_legend_handles_labels()[0], *command_ax.get_legend_handles_labels()[0]]
     if handles:
-        rpm_ax.legend(handles=handles, loc="upper right", fontsize=9)
+        rpm_ax.legend(handles=handles, loc="best", fontsize=9)  # clear of the failure bars
     _failures(rpm_ax, esc)
 
     drew = _line(current_ax, esc.current_a, "supply", color="#d62728")
