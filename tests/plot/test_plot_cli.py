@@ -81,6 +81,27 @@ def test_a_recorded_demo_flight_is_drawn(recorded: Path, tmp_path: Path) -> None
         assert not esc.failures
 
 
+def test_the_newest_recording_one_named_or_all(recorded: Path, tmp_path: Path) -> None:
+    (files,) = find_recordings(recorded)
+    names = ["esc-bridge-20260101-120000", "esc-bridge-20260101-120000-1"]
+    for name in names:
+        shutil.copy(files.log_path, tmp_path / f"{name}.log")
+        shutil.copy(files.tlog_path, tmp_path / f"{name}.tlog")
+
+    def drawn(*args: str) -> list[str]:
+        result = esc_bridge("plot", str(tmp_path), *args)
+        assert result.returncode == 0, result.stderr
+        return [line.split(":")[0] for line in result.stdout.splitlines() if line[:1] != " "]
+
+    assert drawn() == [names[1]]  # the newest: a second recording within the same second
+    assert drawn("--recording", f"{names[0]}.log") == [names[0]]
+    assert drawn("--all") == names
+    assert {p.name for p in tmp_path.glob("*-plot")} == {f"{n}-plot" for n in names}
+    result = esc_bridge("plot", str(tmp_path), "--recording", "esc-bridge-20250101-000000")
+    assert result.returncode == 2
+    assert f"no recording esc-bridge-20250101-000000; it holds {', '.join(names)}" in result.stderr
+
+
 def test_a_directory_that_is_not_a_recording_is_refused(tmp_path: Path) -> None:
     result = esc_bridge("plot", str(tmp_path))
     assert result.returncode == 2
