@@ -95,6 +95,8 @@ class DemoOptions:
     """Plain-text tables even on a terminal."""
     time_scale: float = 1.0
     """Fly the profile this many times faster (for tests)."""
+    record_dir: Path | None = None
+    """The bridge records the flight here (``esc-bridge run --record``); None: no recording."""
 
     def __post_init__(self) -> None:
         if self.protocol not in registry.names():
@@ -213,8 +215,9 @@ def esc_bridge_command() -> list[str]:
     return [sys.executable, "-c", "import sys; from bridge.cli import main; sys.exit(main())"]
 
 
-def bridge_args(config_path: Path) -> list[str]:
-    return ["run", "--config", str(config_path)]
+def bridge_args(config_path: Path, record_dir: Path | None = None) -> list[str]:
+    record = [] if record_dir is None else ["--record", str(record_dir)]
+    return ["run", "--config", str(config_path), *record]
 
 
 def sim_args(options: DemoOptions, ports: DemoPorts) -> list[str]:
@@ -495,7 +498,7 @@ class Demo:
         config_path.write_text(toml_text(bridge_settings(o, ports)), encoding="utf-8")
         command = esc_bridge_command()
         try:
-            self.bridge = Child("bridge", [*command, *bridge_args(config_path)])
+            self.bridge = Child("bridge", [*command, *bridge_args(config_path, o.record_dir)])
             self.sim = Child("sim", [*command, *sim_args(o, ports)])
         except OSError as exc:
             raise _Failed(f"cannot start {command[0]}: {exc}") from exc

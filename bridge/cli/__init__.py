@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    from bridge.cli import decode, demo, esc, monitor, run, sim  # after main's first line
+    from bridge.cli import decode, demo, esc, monitor, plot, run, sim  # after main's first line
 
     decode.add_parser(commands)
     run.add_parser(commands)
@@ -60,4 +60,5 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_parser(commands)
     demo.add_parser(commands)
     esc.add_parser(commands)
+    plot.add_parser(commands)
     return parser

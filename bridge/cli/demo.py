@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from bridge.cli._common import positive_seconds
 from bridge.escs import registry
@@ -43,6 +44,14 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         action="store_true",
         help="print a plain-text table every second even when stdout is a terminal",
     )
+    demo.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the bridge records the flight into DIR as `esc-bridge run --record` does (a "
+        "candump .log and a .tlog; `esc-bridge plot DIR` draws them)",
+    )
     # Flies the same profile faster; for tests.
     demo.add_argument("--time-scale", type=positive_seconds, default=1.0, help=argparse.SUPPRESS)
     demo.set_defaults(handler=_demo)
@@ -57,5 +66,6 @@ def _demo(args: argparse.Namespace) -> int:
         duration_s=args.duration,
         plain=args.plain,
         time_scale=args.time_scale,
+        record_dir=args.record,
     )
     return demo.run_demo(options, sys.stdout, sys.stderr)

@@ -20,7 +20,14 @@ from pymavlink import mavutil
 
 from bridge import preflight
 from bridge.config import build_config
-from bridge.demo import DemoOptions, DemoPorts, bridge_config, bridge_settings, toml_text
+from bridge.demo import (
+    DemoOptions,
+    DemoPorts,
+    bridge_args,
+    bridge_config,
+    bridge_settings,
+    toml_text,
+)
 from bridge.mavlink import load_dialect
 from bridge.mixing.loader import load_mixer
 from bridge.sim.autopilot import (
@@ -155,6 +162,18 @@ def test_the_bridge_configuration_is_valid_and_fits_the_bus(
     assert (config.zenoh.vehicle, config.zenoh.multicast_scouting) == ("demo", False)
     planned = preflight.plan(bridge_config(options, ports))  # bus load, one ESC per output
     assert len(planned.mixer.outputs) == motor_count(airframe)
+
+
+def test_the_bridge_records_the_flight_when_asked() -> None:
+    assert bridge_args(Path("demo.toml")) == ["run", "--config", "demo.toml"]
+    assert bridge_args(Path("demo.toml"), Path("flights")) == [
+        "run",
+        "--config",
+        "demo.toml",
+        "--record",
+        "flights",
+    ]
+    # tests/plot/test_plot_cli.py records a whole demo flight this way and draws it.
 
 
 # -- the demo, end to end ---------------------------------------------------------------------

@@ -1,0 +1,147 @@
+"""``esc-bridge plot`` end to end: a real demo flight recorded through the CLI (``demo
+--record``), drawn by the CLI, the PNGs read back; the errors a user meets (not a recording, a
+missing file, no matplotlib); and no other command loading matplotlib."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bridge.plot.flight import load_flight
+from bridge.plot.recording import find_recordings
+from bridge.plot.spans import ARMED
+from bridge.sim.autopilot import phase_start
+
+mpl_image = pytest.importorskip(
+    "matplotlib.image", reason="matplotlib (the plot extra, in the test extra) is not installed"
+)
+
+ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
+TIME_SCALE = 4
+
+
+def esc_bridge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [ESC_BRIDGE, *args], capture_output=True, text=True, timeout=timeout, check=False
+    )
+
+
+@pytest.fixture(scope="module", params=["ckesc", "ft"])
+def recorded(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A directory holding one recorded demo flight (quad, flown 4 times faster)."""
+    directory = tmp_path_factory.mktemp(f"record-{request.param}")
+    demo = esc_bridge(
+        "demo",
+        "--plain",
+        "--protocol",
+        request.param,
+        "--time-scale",
+        str(TIME_SCALE),
+        "--record",
+        str(directory),
+        timeout=90,
+    )
+    assert demo.returncode == 0, demo.stdout[-3000:] + demo.stderr
+    assert "flight complete" in demo.stdout
+    return directory
+
+
+def test_a_recorded_demo_flight_is_drawn(recorded: Path, tmp_path: Path) -> None:
+    (files,) = find_recordings(recorded)
+    result = esc_bridge("plot", str(recorded), "--out", str(tmp_path))
+    assert result.returncode == 0, result.stdout + result.stderr
+    out = tmp_path / f"{files.name}-plot"
+    pictures = ["overview.png", "esc-1.png", "esc-2.png", "esc-3.png", "esc-4.png"]
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith(f"{files.name}: 4 ESCs (") and "1 armed" in lines[0], lines
+    assert lines[1:] == [f"  {out / name}" for name in ["index.html", *pictures]]
+    for name in pictures:
+        pixels = mpl_image.imread(out / name)
+        height = 800 if name == "overview.png" else 1100
+        assert pixels.shape == (height, 1400, 4), name
+        assert pixels.std() > 0.05, name
+    page = (out / "index.html").read_text()
+    assert all(f'<img src="{name}"' in page for name in pictures)
+    assert "ESC out: armed, sending motor commands" in page
+
+    # What was drawn: the flight as the demo flew it.
+    flight = load_flight(files)
+    (armed,) = flight.spans_of(ARMED)
+    flown = (phase_start("disarm") - phase_start("arm")) / TIME_SCALE
+    assert armed.end_s - armed.start_s == pytest.approx(flown, abs=0.5)
+    for esc in flight.escs:
+        assert (esc.rpm.max_abs() or 0) > 1000, esc.title
+        assert len(esc.voltage_v) and len(esc.current_a) and esc.temps_c, esc.title
+        (unit, commands) = next(iter(esc.commands.items()))
+        assert max(commands.values) > 0, (esc.title, unit)
+        assert not esc.failures
+
+
+def test_the_newest_recording_one_named_or_all(recorded: Path, tmp_path: Path) -> None:
+    (files,) = find_recordings(recorded)
+    names = ["esc-bridge-20260101-120000", "esc-bridge-20260101-120000-1"]
+    for name in names:
+        shutil.copy(files.log_path, tmp_path / f"{name}.log")
+        shutil.copy(files.tlog_path, tmp_path / f"{name}.tlog")
+
+    def drawn(*args: str) -> list[str]:
+        result = esc_bridge("plot", str(tmp_path), *args)
+        assert result.returncode == 0, result.stderr
+        return [line.split(":")[0] for line in result.stdout.splitlines() if line[:1] != " "]
+
+    assert drawn() == [names[1]]  # the newest: a second recording within the same second
+    assert drawn("--recording", f"{names[0]}.log") == [names[0]]
+    assert drawn("--all") == names
+    assert {p.name for p in tmp_path.glob("*-plot")} == {f"{n}-plot" for n in names}
+    result = esc_bridge("plot", str(tmp_path), "--recording", "esc-bridge-20250101-000000")
+    assert result.returncode == 2
+    assert f"no recording esc-bridge-20250101-000000; it holds {', '.join(names)}" in result.stderr
+
+
+def test_a_directory_that_is_not_a_recording_is_refused(tmp_path: Path) -> None:
+    result = esc_bridge("plot", str(tmp_path))
+    assert result.returncode == 2
+    assert "not a recording; expected esc-bridge-YYYYmmdd-HHMMSS.log and .tlog" in result.stderr
+    result = esc_bridge("plot", str(tmp_path / "absent"))
+    assert (result.returncode, result.stderr.strip()) == (
+        2,
+        f"esc-bridge: recording directory {tmp_path / 'absent'}: no such directory",
+    )
+
+
+def test_a_recording_without_its_tlog_is_refused(recorded: Path, tmp_path: Path) -> None:
+    (files,) = find_recordings(recorded)
+    shutil.copy(files.log_path, tmp_path)
+    result = esc_bridge("plot", str(tmp_path))
+    assert result.returncode == 2
+    assert f"its MAVLink tlog {files.name}.tlog is missing" in result.stderr
+
+
+def test_without_matplotlib_it_says_what_to_install(recorded: Path, tmp_path: Path) -> None:
+    # The interpreter refuses to import matplotlib, as one without it installed does.
+    code = (
+        "import sys; sys.modules['matplotlib'] = None; from bridge.cli import main; "
+        f"sys.exit(main(['plot', {str(recorded)!r}, '--out', {str(tmp_path)!r}]))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert result.returncode == 1, result.stderr
+    assert "pip install 'esc-bridge[plot]'" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_nothing_but_the_plot_command_imports_matplotlib() -> None:
+    code = (
+        "import sys; from bridge.cli import build_parser; build_parser(); "
+        "import bridge.plot.flight, bridge.plot.page, bridge.daemon, bridge.demo; "
+        "print(sorted(m for m in sys.modules if m.startswith('matplotlib')))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert result.stdout.strip() == "[]"
