@@ -58,7 +58,7 @@ from bridge.preflight import Plan
 from bridge.record import Recording
 from bridge.relay import MainConnection, relay_pair
 from bridge.stopping import StopSignals
-from bridge.telemetry.state import EscTable
+from bridge.telemetry.for_config import esc_table
 
 log = logging.getLogger(__name__)
 
@@ -420,7 +420,7 @@ class Supervisor:
         self.link.add_command_handler(self.motor_test.handle_command)
         self.fanout = Fanout(
             config,
-            EscTable.for_config(config),
+            esc_table(config),
             self.link,
             health=self.health,
             actuators_input=self.actuators_input,

@@ -15,7 +15,7 @@
             ├── NotExtendedIdError        an 11-bit (standard) ID, an RTR or an error frame
             ├── DlcError                  the wrong data length for its type
             ├── CrcError                  the CRC does not match
-            ├── TailByteError             a CKESC tail byte that is not a single-frame transfer
+            ├── TailByteError             a UAVCAN v0 tail byte that is not a single-frame transfer
             └── UnknownTypeError          an ID in the protocol's range with no known type
 
 Decoders return ``None`` for a frame of another protocol ("not ours"); they raise a
@@ -79,7 +79,8 @@ class CrcError(FrameError):
 
 
 class TailByteError(FrameError):
-    """A CKESC tail byte without start=end=1, toggle=0 (not a single-frame transfer)."""
+    """A UAVCAN v0 tail byte without start=end=1, toggle=0 where the protocol allows only
+    single-frame transfers."""
 
 
 class UnknownTypeError(FrameError):

@@ -47,6 +47,7 @@ from bridge.escs.ft.sim import SimFt
 from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
 from bridge.sim.runner import Simulator, make_escs
+from bridge.telemetry.for_config import esc_table
 from bridge.telemetry.state import EscTable
 
 MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's IPv6 default
@@ -577,7 +578,7 @@ def make_fanout(config: BridgeConfig, **kwargs: Any) -> Fanout:
     link = MavlinkLink(config.mavlink, _NoInput())  # never started: what it is sent is dropped
     return Fanout(
         config,
-        EscTable.for_config(config),
+        esc_table(config),
         link,
         health=dict,
         actuators_input=lambda: None,

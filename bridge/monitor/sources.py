@@ -24,7 +24,7 @@ from bridge.config import BridgeConfig, ZenohConfig
 from bridge.errors import ConfigError, LinkError
 from bridge.escs import registry
 from bridge.monitor.view import VehicleState
-from bridge.telemetry.state import EscTable
+from bridge.telemetry.for_config import esc_table
 
 if TYPE_CHECKING:
     import can
@@ -265,7 +265,7 @@ class CanSource:
 
     def __init__(self, config: BridgeConfig, bus: can.BusABC) -> None:
         """Use :meth:`open`, which opens the bus and starts reading."""
-        self.table = EscTable.for_config(config)
+        self.table = esc_table(config)
         self._bus: can.BusABC | None = bus
         self.reader = CanReader(bus, self.table, registry.family(config.output.protocol))
         self._name = f"{config.can.interface}:{config.can.channel}"

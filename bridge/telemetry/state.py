@@ -23,8 +23,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridge.config import BridgeConfig
-from bridge.escs import registry
 from bridge.escs.family import (
     FAILURE_GENERIC,
     FAILURE_OVER_CURRENT,
@@ -249,24 +247,6 @@ class EscTable:
         """Telemetry from an ID that is not one of ours."""
         self.unattributed_errors = 0
         """Malformed frames whose ID names none of our ESCs."""
-
-    @classmethod
-    def for_config(cls, config: BridgeConfig) -> EscTable:
-        """The ESCs of ``config`` (its ESC lists already sized by ``with_esc_count``), with
-        its ``[telemetry]`` timeout, pole pairs and limits."""
-        telemetry, family = config.telemetry, registry.family(config.output.protocol)
-        return cls(
-            config.escs.ids,
-            pole_pairs=telemetry.pole_pairs,
-            channels=family.channels(config),
-            timeout_ms=telemetry.timeout_ms,
-            limits=TelemetryLimits(
-                max_temp_c=telemetry.max_temp_c,
-                max_current_a=telemetry.max_current_a,
-                max_rpm=telemetry.max_rpm,
-                error_burst=telemetry.error_burst,
-            ),
-        )
 
     @property
     def node_ids(self) -> tuple[int, ...]:

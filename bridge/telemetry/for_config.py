@@ -1,0 +1,27 @@
+"""The ESC state of a configuration: the one place that reads ``[telemetry]`` and the ESC lists
+into an :class:`~bridge.telemetry.state.EscTable`, so the state itself stays free of the
+configuration (and runs, and is tested, without it)."""
+
+from __future__ import annotations
+
+from bridge.config import BridgeConfig
+from bridge.escs import registry
+from bridge.telemetry.state import EscTable, TelemetryLimits
+
+
+def esc_table(config: BridgeConfig) -> EscTable:
+    """The ESCs of ``config`` (its ESC lists already sized by ``with_esc_count``), with its
+    ``[telemetry]`` timeout, pole pairs and limits."""
+    telemetry, family = config.telemetry, registry.family(config.output.protocol)
+    return EscTable(
+        config.escs.ids,
+        pole_pairs=telemetry.pole_pairs,
+        channels=family.channels(config),
+        timeout_ms=telemetry.timeout_ms,
+        limits=TelemetryLimits(
+            max_temp_c=telemetry.max_temp_c,
+            max_current_a=telemetry.max_current_a,
+            max_rpm=telemetry.max_rpm,
+            error_burst=telemetry.error_burst,
+        ),
+    )
