@@ -45,9 +45,11 @@ from bridge.escs.dronecan.wire import (
     COMMAND_MIN,
     CRC_START,
     MAX_COMMANDS,
+    NODE_STATUS_BYTES,
     PRIORITY_ESC_COMMAND,
     PRIORITY_LOWEST,
     PRIORITY_MEDIUM,
+    STATUS_BYTES,
     TYPE_ESC_STATUS,
     TYPE_NODE_STATUS,
     TYPE_RAW_COMMAND,
@@ -69,9 +71,6 @@ __all__ = [
 ]
 
 KELVIN_OFFSET: Final = 273.15
-_ESC_STATUS_BYTES: Final = 14
-"""110 bits: u32, three float16, int18, u7, u5."""
-_NODE_STATUS_BYTES: Final = 7
 
 _DC: Any = dronecan
 _DC_RAW_COMMAND: Any = _DC.uavcan.equipment.esc.RawCommand
@@ -192,8 +191,8 @@ def _deserialize(type_id: int, transfer: Transfer) -> DronecanMessage:
     payload = transfer.payload
     size = len(payload)
     if type_id == TYPE_ESC_STATUS:
-        if size != _ESC_STATUS_BYTES:
-            raise DlcError(f"DroneCAN esc.Status of {size} bytes, expected {_ESC_STATUS_BYTES}")
+        if size != STATUS_BYTES:
+            raise DlcError(f"DroneCAN esc.Status of {size} bytes, expected {STATUS_BYTES}")
         status = _unpack(_DC_ESC_STATUS, payload)
         return EscStatus(
             int(status.esc_index),
@@ -205,8 +204,8 @@ def _deserialize(type_id: int, transfer: Transfer) -> DronecanMessage:
             int(status.power_rating_pct),
         )
     if type_id == TYPE_NODE_STATUS:
-        if size != _NODE_STATUS_BYTES:
-            raise DlcError(f"DroneCAN NodeStatus of {size} bytes, expected {_NODE_STATUS_BYTES}")
+        if size != NODE_STATUS_BYTES:
+            raise DlcError(f"DroneCAN NodeStatus of {size} bytes, expected {NODE_STATUS_BYTES}")
         node = _unpack(_DC_NODE_STATUS, payload)
         return NodeStatus(
             int(node.uptime_sec),

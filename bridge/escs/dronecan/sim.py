@@ -104,7 +104,8 @@ class _CommandReader:
 class SimDronecanEsc:
     """One simulated DroneCAN ESC following slot ``esc_index`` (0..19) from node
     ``can_node_id`` (1..125; default :data:`NODE_ID_BASE` + index). Its :attr:`node_id` for the
-    runner (faults, look-ups) is the ESC index, the ID the bridge knows it by.
+    runner (faults, look-ups) is the ESC number, index + 1, the ID the bridge knows it by
+    (``[escs] ids``; ArduPilot's "ESC 1" is index 0).
 
     Raises:
         ValueError: an index or node ID out of range.
@@ -124,7 +125,8 @@ class SimDronecanEsc:
         node = NODE_ID_BASE + esc_index if can_node_id is None else can_node_id
         if not 1 <= node <= 125:
             raise ValueError(f"can_node_id={node!r} outside 1..125")
-        self.node_id = esc_index
+        self.esc_index = esc_index
+        self.node_id = esc_index + 1
         self.can_node_id = node
         self.motor = motor or Motor()
         self.faults = Faults()
@@ -141,10 +143,6 @@ class SimDronecanEsc:
         self._started_s: float | None = None
 
     @property
-    def esc_index(self) -> int:
-        return self.node_id
-
-    @property
     def commanded(self) -> bool:
         """True while a command is in force (less than 500 ms old)."""
         return self._last_command_s is not None
@@ -158,9 +156,9 @@ class SimDronecanEsc:
         if frame is None or not isinstance(frame.message, RawCommand):
             return []
         commands = frame.message.commands
-        if self.node_id >= len(commands):
+        if self.esc_index >= len(commands):
             return []
-        value = commands[self.node_id]
+        value = commands[self.esc_index]
         self.command = value
         if value < 0 and not self.reversible:
             value = 0
@@ -209,7 +207,7 @@ class SimDronecanEsc:
         current = OVER_CURRENT_A if self.faults.over_current else motor.current_a
         temp_c = OVER_TEMPERATURE_C if self.faults.over_temperature else motor.mos_temp_c
         status = EscStatus(
-            esc_index=self.node_id,
+            esc_index=self.esc_index,
             error_count=self.stats.bad_frames,
             voltage_v=supply_v,
             current_a=current,

@@ -102,12 +102,14 @@ def frames_data(payload: bytes | bytearray, transfer_id: int, crc_start: int) ->
     ]
 
 
-def frame_count(payload_bytes: int) -> int:
-    """Frames in a transfer of ``payload_bytes``: one up to 7 bytes, else the CRC's two bytes
-    and the payload in 7-byte pieces."""
+def frame_sizes(payload_bytes: int) -> list[int]:
+    """The data length of each frame of a transfer of ``payload_bytes`` (tail bytes included):
+    one frame up to 7 bytes, else the CRC's two bytes and the payload in 7-byte pieces."""
     if payload_bytes <= FRAME_PAYLOAD:
-        return 1
-    return -(-(payload_bytes + 2) // FRAME_PAYLOAD)
+        return [payload_bytes + 1]
+    stream = payload_bytes + 2
+    full, rest = divmod(stream, FRAME_PAYLOAD)
+    return [FRAME_PAYLOAD + 1] * full + ([rest + 1] if rest else [])
 
 
 @dataclass(frozen=True, slots=True)

@@ -66,6 +66,9 @@ MAX_COMMANDS: Final = 20
 COMMAND_MAX: Final = 8191
 """Full scale of a RawCommand value, forward (and, negated, reverse)."""
 COMMAND_MIN: Final = -8192
+STATUS_BYTES: Final = 14
+"""An esc.Status payload: 110 bits (u32, three float16, int18, u7, u5), three frames."""
+NODE_STATUS_BYTES: Final = 7
 NODE_STATUS_PERIOD_NS: Final = 1_000_000_000
 """NodeStatus is sent once a second (the standard's MAX_BROADCASTING_PERIOD_MS is 1000)."""
 

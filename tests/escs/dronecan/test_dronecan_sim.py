@@ -62,6 +62,8 @@ def test_escs_follow_their_slots_and_report() -> None:
     driver = DronecanDriver([0, 1, 2, 3], node_status=False)
     sent = run(escs, driver, [0.2, 0.4, 0.6, 0.0], 1.0)
     assert [esc.command for esc in escs] == [1638, 3276, 4915, 0]
+    # The runner knows each by its ESC number (index + 1), the bus by its node ID (20 + index).
+    assert [(esc.node_id, esc.can_node_id) for esc in escs] == [(1, 20), (2, 21), (3, 22), (4, 23)]
     for esc, fraction in zip(escs, [0.2, 0.4, 0.6, 0.0], strict=True):
         assert esc.motor.rpm == pytest.approx(fraction * FULL_RPM, rel=0.01, abs=1)
         assert esc.stats.commands == 400 and esc.stats.bad_frames == 0

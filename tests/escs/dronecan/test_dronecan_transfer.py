@@ -14,7 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.errors import CrcError, DlcError, TailByteError, ValueRangeError
-from bridge.escs.dronecan.transfer import Reassembler, crc16, frame_count, frames_data
+from bridge.escs.dronecan.transfer import Reassembler, crc16, frame_sizes, frames_data
 from bridge.escs.dronecan.wire import CRC_START, SIGNATURE_RAW_COMMAND, TYPE_RAW_COMMAND
 
 DC: Any = dronecan
@@ -57,7 +57,7 @@ def test_frames_are_dronecans(payload: bytes, transfer_id: int) -> None:
     transfer.data_type_crc = CRC_START[TYPE_RAW_COMMAND]
     expected = [bytes(frame.bytes) for frame in transfer.to_frames()]
     assert frames_data(payload, transfer_id, CRC_START[TYPE_RAW_COMMAND]) == expected
-    assert frame_count(len(payload)) == len(expected)
+    assert frame_sizes(len(payload)) == [len(data) for data in expected]
 
 
 @given(st.binary(max_size=60), st.integers(0, 31))
