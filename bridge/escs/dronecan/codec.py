@@ -9,9 +9,10 @@ records. What the output loop sends is encoded by hand in :mod:`bridge.escs.dron
 
 :class:`Decoder` is the one stateful part: a Status is 14 bytes, a multi-frame transfer of three
 frames, and a RawCommand for more than four ESCs is one too, so frames are put back together per
-sender; and a NodeStatus names only its sender's node ID, which the decoder maps to an ESC
-index once that node's Status has said which index it is. One decoder per stream of frames
-(a reader thread, a capture file). No I/O, clock or logging.
+sender (each frame before a transfer's last decodes to a :class:`TransferPart`, so every frame
+of ours is accounted for); and a NodeStatus names only its sender's node ID, which the decoder
+maps to an ESC index once that node's Status has said which index it is. One decoder per
+stream of frames (a reader thread, a capture file). No I/O, clock or logging.
 
 Decisions where the standard leaves a choice:
 
@@ -65,6 +66,7 @@ __all__ = [
     "NodeStatus",
     "RawCommand",
     "Sender",
+    "TransferPart",
     "default_priority",
     "encode",
     "owns",
@@ -125,7 +127,19 @@ class NodeStatus:
     vendor_status: int = 0
 
 
-DronecanMessage: TypeAlias = RawCommand | EscStatus | NodeStatus
+@dataclass(frozen=True, slots=True)
+class TransferPart:
+    """A frame of a multi-frame transfer still in progress (the transfer itself is reported
+    with its last frame): every frame of ours decodes to something, so a capture's lines and
+    counts show each of them."""
+
+    message_type: str
+    """The record the transfer will be: ``RawCommand``, ``EscStatus`` or ``NodeStatus``."""
+    frame: int
+    """This frame's place in the transfer, from 1."""
+
+
+DronecanMessage: TypeAlias = RawCommand | EscStatus | NodeStatus | TransferPart
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +154,7 @@ class DronecanFrame:
     """The ESC it is from: a Status's own index, or for a NodeStatus the index its node last
     reported (None until then, and for commands)."""
     frames: int = 1
+    """How many frames carried it (for a part: how many so far)."""
 
     @property
     def node_id(self) -> int:
@@ -152,6 +167,7 @@ _TYPES: Final[dict[type[Any], int]] = {
     EscStatus: TYPE_ESC_STATUS,
     NodeStatus: TYPE_NODE_STATUS,
 }
+_NAMES: Final[dict[int, str]] = {type_id: record.__name__ for record, type_id in _TYPES.items()}
 
 
 def owns(arbitration_id: int) -> bool:
@@ -163,7 +179,7 @@ def owns(arbitration_id: int) -> bool:
     )
 
 
-def default_priority(message: DronecanMessage) -> int:
+def default_priority(message: RawCommand | EscStatus | NodeStatus) -> int:
     """The priority a message is sent at: commands as ArduPilot sends them, ESC status at
     MEDIUM, NodeStatus at LOWEST."""
     if isinstance(message, RawCommand):
@@ -247,9 +263,10 @@ class Decoder:
     def decode(
         self, msg: can.Message, esc_indices: Container[int] | None = None
     ) -> DronecanFrame | None:
-        """Take one frame; the transfer it completes, decoded, or ``None`` (not ours, or a
-        transfer still in progress). With ``esc_indices``, a Status of another ESC index (and
-        the NodeStatus of its node) is not ours either.
+        """Take one frame; the transfer it completes, decoded, a :class:`TransferPart` for a
+        frame of a transfer still in progress, or ``None`` (not ours). With ``esc_indices``, a
+        Status of another ESC index (its parts too, once its node is known) and the NodeStatus
+        of its node are not ours either.
 
         Raises:
             bridge.errors.FrameError: the frame breaks its transfer (tail byte, CRC), or a
@@ -261,9 +278,20 @@ class Decoder:
         if not owns(arbitration_id):
             return None
         transfer = self._reassembler.feed(arbitration_id, msg.data)
-        if transfer is None:
-            return None
         can_id = parse_id(arbitration_id)
+        if transfer is None:
+            index = self._index_of_node.get(can_id.source_node)
+            if esc_indices is not None and index is not None and index not in esc_indices:
+                return None
+            part = self._reassembler.frames_so_far(arbitration_id)
+            return DronecanFrame(
+                can_id.priority,
+                can_id.source_node,
+                msg.data[-1] & 0x1F,
+                TransferPart(_NAMES[can_id.type_id], part),
+                None,
+                part,
+            )
         message = _deserialize(can_id.type_id, transfer)
         esc_index: int | None = None
         if isinstance(message, EscStatus):
@@ -273,7 +301,7 @@ class Decoder:
             esc_index = self._index_of_node.get(can_id.source_node)
         if (
             esc_indices is not None
-            and not isinstance(message, RawCommand)
+            and isinstance(message, EscStatus | NodeStatus)
             and (esc_index is None or esc_index not in esc_indices)
         ):
             return None
@@ -291,7 +319,7 @@ class Decoder:
         self._reassembler.reset()
 
 
-def _dc_message(message: DronecanMessage) -> Any:
+def _dc_message(message: RawCommand | EscStatus | NodeStatus) -> Any:
     if isinstance(message, RawCommand):
         return _DC_RAW_COMMAND(cmd=list(message.commands))
     if isinstance(message, EscStatus):
@@ -315,7 +343,7 @@ def _dc_message(message: DronecanMessage) -> Any:
 
 
 def encode(
-    message: DronecanMessage,
+    message: RawCommand | EscStatus | NodeStatus,
     source_node: int,
     transfer_id: int,
     priority: int | None = None,
@@ -357,7 +385,7 @@ class Sender:
         self.source_node = source_node
         self._ids = TransferIds()
 
-    def frames(self, message: DronecanMessage) -> list[can.Message]:
+    def frames(self, message: RawCommand | EscStatus | NodeStatus) -> list[can.Message]:
         """The frames of ``message``'s next transfer from this node.
 
         Raises:

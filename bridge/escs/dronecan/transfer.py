@@ -226,6 +226,11 @@ class Reassembler:
         self.transfers += 1
         return Transfer(arbitration_id, transfer_id, payload, -(-len(stream) // FRAME_PAYLOAD))
 
+    def frames_so_far(self, arbitration_id: int) -> int:
+        """Frames taken of the transfer in progress in ``arbitration_id``'s session (0: none)."""
+        partial = self._partial.get(arbitration_id & SESSION_MASK)
+        return 0 if partial is None else len(partial.data) // FRAME_PAYLOAD
+
     def reset(self) -> None:
         """Forget every transfer in progress (a reopened bus)."""
         self._partial.clear()

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from bridge.errors import CrcError, DlcError, FrameError, ValueRangeError
 from bridge.escs.dronecan import codec, wire
-from bridge.escs.dronecan.codec import Decoder, EscStatus, NodeStatus, RawCommand
+from bridge.escs.dronecan.codec import Decoder, EscStatus, NodeStatus, RawCommand, TransferPart
 from bridge.escs.dronecan.transfer import frames_data
 
 # Values a float16 holds exactly, and NaN (not measured).
@@ -21,7 +21,10 @@ HALF = st.one_of(
 
 
 def decode_all(decoder: Decoder, frames: list[can.Message]) -> list[codec.DronecanFrame]:
-    return [f for f in (decoder.decode(m) for m in frames) if f is not None]
+    """The whole transfers ``frames`` carry (every other frame decodes to a part of one)."""
+    decoded = [decoder.decode(m) for m in frames]
+    assert all(f is not None for f in decoded)
+    return [f for f in decoded if f is not None and not isinstance(f.message, TransferPart)]
 
 
 @given(
@@ -53,6 +56,13 @@ def test_esc_status_round_trip(
     assert frame.message == status
     assert (frame.source_node, frame.node_id, frame.esc_index) == (node, node, index)
     assert (frame.transfer_id, frame.priority, frame.frames) == (transfer_id, 16, 3)
+    fresh = Decoder()
+    parts = [fresh.decode(m) for m in frames[:2]]
+    assert [p.message if p else None for p in parts] == [
+        TransferPart("EscStatus", 1),
+        TransferPart("EscStatus", 2),
+    ]
+    assert all(p is not None and p.transfer_id == transfer_id for p in parts)
 
 
 @given(st.lists(st.integers(-8192, 8191), min_size=1, max_size=20), st.integers(0, 31))
@@ -81,8 +91,13 @@ def test_node_status_maps_to_the_index_its_node_reported() -> None:
     # Filtered by our ESC indices: another index's Status and its node's NodeStatus are not ours.
     assert decoder.decode(node_status[0], esc_indices={0, 1}) is None
     assert decoder.decode(node_status[0], esc_indices={3}) is not None
-    for msg in codec.encode(EscStatus(7, 0, 16.0, 1.0, 300.0, 100, 10), 26, 0):
-        assert decoder.decode(msg, esc_indices={3}) is None
+    other = codec.encode(EscStatus(7, 0, 16.0, 1.0, 300.0, 100, 10), 26, 0)
+    first = decoder.decode(other[0], esc_indices={3})  # a part: its node's index is not known
+    assert first is not None and isinstance(first.message, TransferPart)
+    second, last = (decoder.decode(msg, esc_indices={3}) for msg in other[1:])
+    assert second is not None and isinstance(second.message, TransferPart) and last is None
+    assert decoder.index_of_node(26) == 7
+    assert decoder.decode(other[0], esc_indices={3}) is None  # now it is
 
 
 def test_interleaved_status_transfers_of_several_escs() -> None:
