@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 import can
 
 from bridge.errors import ValueRangeError
+from bridge.escs.drivers import signed_fraction, unit_fraction
 from bridge.escs.dronecan.wire import (
     COMMAND_MAX,
     DEFAULT_NODE_ID,
@@ -97,12 +98,8 @@ class DronecanDriver:
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
         commands = self._commands
         for (index, reverse), fraction in zip(self._slots, fractions, strict=True):
-            if reverse:
-                if not -1.0 <= fraction <= 1.0:
-                    fraction = 1.0 if fraction > 1.0 else -1.0 if fraction < -1.0 else 0.0
-            elif not 0.0 <= fraction <= 1.0:
-                fraction = 1.0 if fraction > 1.0 else 0.0
-            commands[index] = round(fraction * COMMAND_MAX)
+            limited = signed_fraction(fraction) if reverse else unit_fraction(fraction)
+            commands[index] = round(limited * COMMAND_MAX)
         return self._with_status(self._encoder.frames(commands))
 
     def safe_frames(self, tick: int) -> list[can.Message]:
