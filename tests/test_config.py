@@ -133,6 +133,46 @@ def test_bus_load_arithmetic() -> None:
     assert load.telemetry_bits_per_s == 4 * (50 * frame_bits(7) + 10 * frame_bits(6) + 2 * 160)
 
 
+def test_dronecan_bus_load_arithmetic() -> None:
+    config = with_esc_count(
+        build_config({"output": {"protocol": "dronecan"}, "mixer": {"name": "passthrough-8"}}, "v"),
+        8,
+    )
+    assert config.bitrate == 1_000_000 and config.rate_hz == 400  # the family's defaults
+    load = bus_load(config)
+    # Eight values are 14 bytes, with the transfer CRC 16: frames of 8, 8 and 3 bytes per tick,
+    # and our NodeStatus (8 bytes) once a second.
+    assert load.command_frames_per_s == 400 * 3 + 1
+    assert load.command_bits_per_s == 400 * (2 * 160 + frame_bits(3)) + 160
+    # Each ESC: esc.Status (14 bytes: 8, 8, 3) at 50 Hz, NodeStatus once a second.
+    assert load.telemetry_frames_per_s == 8 * (50 * 3 + 1)
+    assert load.telemetry_bits_per_s == 8 * (50 * (2 * 160 + frame_bits(3)) + 160)
+    # Four ESCs fit one frame; ESC numbers 5..8 alone still need slots 0..7.
+    quad = with_esc_count(build_config({"output": {"protocol": "dronecan"}}, "v"), 4)
+    assert bus_load(quad).command_frames_per_s == 401
+    high = build_config({"output": {"protocol": "dronecan"}, "escs": {"ids": [5, 6, 7, 8]}}, "v")
+    assert bus_load(with_esc_count(high, 4)).command_frames_per_s == 400 * 3 + 1
+
+
+def test_dronecan_keys_are_checked() -> None:
+    with pytest.raises(ConfigError, match=r"dronecan_node_id: expected an integer 1..125"):
+        build_config({"escs": {"dronecan_node_id": 0}}, "v.toml")
+    with pytest.raises(ConfigError, match=r"ids \[1, 2, 3, 21\]: a DroneCAN RawCommand carries"):
+        preflight.plan(
+            build_config({"output": {"protocol": "dronecan"}, "escs": {"ids": [1, 2, 3, 21]}}, "v")
+        )
+    with pytest.raises(ConfigError, match=r"dronecan_reversible names ESCs \[7\]"):
+        build_config(
+            {
+                "output": {"protocol": "dronecan"},
+                "escs": {"ids": [1, 2, 3, 4], "dronecan_reversible": [7]},
+            },
+            "v.toml",
+        )
+    # Another family selected: the DroneCAN keys are checked for form only.
+    build_config({"escs": {"ids": [1, 2, 3, 4], "dronecan_reversible": [7]}}, "v.toml")
+
+
 def test_command_line_overrides_file(tmp_path: Path) -> None:
     path = tmp_path / "v.toml"
     path.write_text("[output]\nrate_hz = 200\n[can]\noptions = { port = 1, hop_limit = 0 }\n")

@@ -150,6 +150,13 @@ class DronecanFamily:
             )
 
     def with_esc_count(self, config: BridgeConfig, n_outputs: int) -> DronecanKeys:
+        ids = config.escs.ids
+        if config.output.protocol == NAME and any(number not in self.node_ids for number in ids):
+            raise ConfigError(
+                f"{config.source}: [escs] ids {list(ids)}: a DroneCAN RawCommand carries ESCs "
+                f"1..{MAX_COMMANDS} (esc_index 0..{MAX_COMMANDS - 1}); expected ESC numbers "
+                f"1..{MAX_COMMANDS}"
+            )
         return keys_of(config)
 
     def channels(self, config: BridgeConfig) -> Sequence[int] | None:
