@@ -5,6 +5,8 @@ its transfer ID, and our NodeStatus once a second on the driver's clock."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import can
 import pytest
@@ -111,3 +113,21 @@ def test_refusals() -> None:
         DronecanDriver([0], node_id=0)
     with pytest.raises(ValueError):
         DronecanDriver([0, 1], node_status=False).tick_frames(0, [0.5])
+
+
+def test_the_output_loop_never_imports_dronecan() -> None:
+    """The loop's process builds its driver from the config without the ``dronecan`` package
+    (its import costs 0.3 s of CPU and its DSDL tables); only decoding imports it."""
+    code = (
+        "import sys\n"
+        "import bridge.output_loop\n"
+        "from bridge.config import build_config, with_esc_count\n"
+        "from bridge.escs.drivers import make_driver\n"
+        "config = with_esc_count(build_config({'output': {'protocol': 'dronecan'}}, 'x'), 8)\n"
+        "make_driver(config).tick_frames(0, [0.5] * 8)\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'dronecan'))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert result.stdout.strip() == "[]"
