@@ -54,6 +54,7 @@ from bridge.escs.dronecan.wire import (
     TYPE_ESC_STATUS,
     TYPE_NODE_STATUS,
     TYPE_RAW_COMMAND,
+    owns,
     raw_command_bytes,
 )
 
@@ -168,15 +169,6 @@ _TYPES: Final[dict[type[Any], int]] = {
     NodeStatus: TYPE_NODE_STATUS,
 }
 _NAMES: Final[dict[int, str]] = {type_id: record.__name__ for record, type_id in _TYPES.items()}
-
-
-def owns(arbitration_id: int) -> bool:
-    """Whether a 29-bit ID is a message frame of one of our three types from a named node."""
-    return (
-        not arbitration_id & 0x80
-        and arbitration_id & 0x7F != 0
-        and (arbitration_id >> 8) & 0xFFFF in CRC_START
-    )
 
 
 def default_priority(message: RawCommand | EscStatus | NodeStatus) -> int:

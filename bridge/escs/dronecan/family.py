@@ -7,9 +7,10 @@ An ESC is known by its ESC number (``[escs] ids``, default 1..N): its ``esc_inde
 
 Where the interface assumes one frame is one message, DroneCAN does not: an esc.Status is three
 frames. :meth:`DronecanFamily.decode` keeps a :class:`~bridge.escs.dronecan.codec.Decoder` per
-thread (each thread reads one stream of frames: the CAN reader, ``decode``, the monitor) and
-returns a transfer with its last frame. The ``dronecan`` package (behind the codec) is imported
-only when a frame is first decoded: the output loop never imports it.
+thread (each thread reads one stream of frames: the CAN reader, ``decode``, the monitor): a
+transfer decodes with its last frame, each frame before it to a ``TransferPart``. The
+``dronecan`` package (behind the codec) is imported only when a frame is first decoded: the
+output loop never imports it.
 """
 
 from __future__ import annotations
@@ -24,8 +25,7 @@ from bridge.errors import ConfigError
 from bridge.escs.dronecan import bus
 from bridge.escs.dronecan.driver import DronecanDriver
 from bridge.escs.dronecan.keys import DronecanKeys
-from bridge.escs.dronecan.wire import COMMAND_MAX, MAX_COMMANDS, TYPE_ESC_STATUS, TYPE_NODE_STATUS
-from bridge.escs.dronecan.wire import TYPE_RAW_COMMAND as _TYPE_RAW_COMMAND
+from bridge.escs.dronecan.wire import COMMAND_MAX, MAX_COMMANDS, owns
 from bridge.escs.family import BusFigures, CommandSeen, EscFrame, EscTelemetry
 
 if TYPE_CHECKING:
@@ -39,7 +39,6 @@ if TYPE_CHECKING:
     from bridge.sim.motor import MotorParams
 
 NAME: Final = "dronecan"
-_TYPES: Final = frozenset((_TYPE_RAW_COMMAND, TYPE_ESC_STATUS, TYPE_NODE_STATUS))
 
 
 def keys_of(config: BridgeConfig) -> DronecanKeys:
@@ -77,12 +76,7 @@ class DronecanFamily:
     # -- frames ------------------------------------------------------------------------------
 
     def owns(self, arbitration_id: int) -> bool:
-        # A message frame (bit 7 clear) of one of the three standard types, from a named node.
-        return (
-            not arbitration_id & 0x80
-            and arbitration_id & 0x7F != 0
-            and (arbitration_id >> 8) & 0xFFFF in _TYPES
-        )
+        return owns(arbitration_id)
 
     def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
         indices = None if esc_nodes is None else {number - 1 for number in esc_nodes}

@@ -85,6 +85,16 @@ MODE_OFFLINE: Final = 7
 _RAW_COMMAND_CRC: Final = CRC_START[TYPE_RAW_COMMAND]
 
 
+def owns(arbitration_id: int) -> bool:
+    """Whether a 29-bit ID is a message frame (bit 7 clear) of RawCommand, esc.Status or
+    NodeStatus from a named node (not anonymous node 0)."""
+    return (
+        not arbitration_id & 0x80
+        and arbitration_id & 0x7F != 0
+        and (arbitration_id >> 8) & 0xFFFF in CRC_START
+    )
+
+
 def raw_command_bytes(commands: int) -> int:
     """Payload bytes of a RawCommand with ``commands`` values: ceil(14 N / 8)."""
     return (14 * commands + 7) // 8
