@@ -79,7 +79,14 @@ class DronecanFamily:
         return owns(arbitration_id)
 
     def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
-        indices = None if esc_nodes is None else {number - 1 for number in esc_nodes}
+        local = self._local
+        if esc_nodes is None:
+            indices = None
+        elif getattr(local, "nodes", None) is esc_nodes:  # the reader's set, frame after frame
+            indices = local.indices
+        else:
+            indices = frozenset(number - 1 for number in esc_nodes)
+            local.nodes, local.indices = esc_nodes, indices
         return self._decoder().decode(msg, indices)
 
     def node_of(self, msg: can.Message) -> int | None:
