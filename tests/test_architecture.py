@@ -132,7 +132,7 @@ def test_there_are_pure_layers_to_check() -> None:
 HOT_LOOP = "bridge.output.output_loop"
 NOT_ON_THE_HOT_LOOP = re.compile(
     r"^(bridge\.(cli|daemon|monitor|sim|telemetry\.(publish|zenoh)|mavlink\.telemetry_out)"
-    r"|zenoh|rich|matplotlib)(\.|$)"
+    r"|zenoh|rich|matplotlib|dronecan)(\.|$)"
 )
 
 

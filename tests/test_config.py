@@ -107,6 +107,25 @@ def test_ckesc_frame_must_carry_the_channels() -> None:
         with_esc_count(config, 4)
 
 
+def test_dronecan_keys_are_checked() -> None:
+    with pytest.raises(ConfigError, match=r"dronecan_node_id: expected an integer 1..125"):
+        build_config({"escs": {"dronecan_node_id": 0}}, "v.toml")
+    with pytest.raises(ConfigError, match=r"ids \[1, 2, 3, 21\]: a DroneCAN RawCommand carries"):
+        preflight.plan(
+            build_config({"output": {"protocol": "dronecan"}, "escs": {"ids": [1, 2, 3, 21]}}, "v")
+        )
+    with pytest.raises(ConfigError, match=r"dronecan_reversible names ESCs \[7\]"):
+        build_config(
+            {
+                "output": {"protocol": "dronecan"},
+                "escs": {"ids": [1, 2, 3, 4], "dronecan_reversible": [7]},
+            },
+            "v.toml",
+        )
+    # Another family selected: the DroneCAN keys are checked for form only.
+    build_config({"escs": {"ids": [1, 2, 3, 4], "dronecan_reversible": [7]}}, "v.toml")
+
+
 def test_command_line_overrides_file(tmp_path: Path) -> None:
     path = tmp_path / "v.toml"
     path.write_text("[output]\nrate_hz = 200\n[can]\noptions = { port = 1, hop_limit = 0 }\n")

@@ -18,6 +18,9 @@ from pymavlink import mavutil
 
 from bridge.errors import CodecError
 from bridge.escs import ckesc, ft
+from bridge.escs.dronecan.codec import Decoder as DronecanDecoder
+from bridge.escs.dronecan.codec import DronecanFrame, NodeStatus
+from bridge.escs.dronecan.codec import RawCommand as DronecanRawCommand
 
 ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
 
@@ -136,6 +139,81 @@ def test_ft_modes(
     assert all(b == (a - 10) % 4 + 11 for a, b in itertools.pairwise(ids))
     gaps = sorted(b[0] - a[0] for a, b in itertools.pairwise(recent))
     assert 0.001 < gaps[len(gaps) // 2] < 0.006  # the median gap is about 10 ms / 4
+
+
+class DronecanReader:
+    """The observer's frames as DroneCAN transfers: each frame decoded once, in order (a
+    multi-frame RawCommand is put back together across them)."""
+
+    def __init__(self, observer: Observer) -> None:
+        self.observer = observer
+        self.decoder = DronecanDecoder()
+        self._seen: dict[int, DronecanFrame | None] = {}
+
+    def frame(self, msg: can.Message) -> DronecanFrame | None:
+        key = id(msg)
+        if key not in self._seen:
+            try:
+                self._seen[key] = self.decoder.decode(msg)
+            except CodecError:
+                self._seen[key] = None
+        return self._seen[key]
+
+    def wait_for(
+        self, predicate: Callable[[DronecanFrame], bool], timeout_s: float, after: float = 0.0
+    ) -> tuple[float, DronecanFrame]:
+        ts, msg = self.observer.wait_for(
+            lambda m: (f := self.frame(m)) is not None and predicate(f), timeout_s, after
+        )
+        frame = self.frame(msg)
+        assert frame is not None
+        return ts, frame
+
+
+def raw_commands(frame: DronecanFrame) -> tuple[int, ...] | None:
+    message = frame.message
+    return message.commands if isinstance(message, DronecanRawCommand) else None
+
+
+def test_dronecan_commands_multi_frame_and_node_status(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    tmp_path: Path,
+) -> None:
+    """Eight ESCs: each tick one RawCommand of three frames from node 10 at priority 7 (as
+    ArduPilot sends it), read back with dronecan; our NodeStatus once a second."""
+    config = tmp_path / "bridge.toml"
+    config.write_text(
+        '[output]\nprotocol = "dronecan"\n[mixer]\nname = "passthrough-8"\n'
+        "[escs]\ndronecan_reversible = [8]\n"
+    )
+    daemon = start_daemon("--config", str(config))
+    reader = DronecanReader(observer)
+    pwm = [1000, 1250, 1500, 2000, 1100, 1900, 1750, 1000]
+    arm_at(autopilot, pwm)
+    reader.wait_for(lambda f: raw_commands(f) == (0,) * 8, ARM_TIMEOUT_S)
+    # 1000..2000 µs is 0..1; ESC 8 is reversible, so 1000 µs is still 0 (the mixer's range).
+    want = tuple(round(min(max((p - 1000) / 1000, 0.0), 1.0) * 8191) for p in pwm)
+    _, frame = reader.wait_for(lambda f: raw_commands(f) == want, ARM_TIMEOUT_S)
+    assert (frame.priority, frame.source_node, frame.frames) == (7, 10, 3)
+    start = time.monotonic()
+    _, status = reader.wait_for(lambda f: isinstance(f.message, NodeStatus), 3.0, after=start)
+    assert status.source_node == 10 and status.priority == 31
+    assert isinstance(status.message, NodeStatus) and status.message.health == 0
+    # Consecutive transfers take consecutive transfer IDs (mod 32).
+    recent = [
+        f.transfer_id
+        for _, m in observer.frames[-60:]
+        if (f := reader.frame(m)) is not None and raw_commands(f) is not None
+    ]
+    assert len(recent) > 5
+    assert all(b == (a + 1) % 32 for a, b in itertools.pairwise(recent))
+    autopilot.armed = False
+    autopilot.heartbeat()
+    disarmed_at = time.monotonic()
+    reader.wait_for(lambda f: raw_commands(f) == (0,) * 8, 2.0, after=disarmed_at)
+    assert daemon.stop() == 0
 
 
 def test_stale_input_goes_safe_within_timeout(

@@ -11,6 +11,8 @@ import pytest
 from conftest import ESC_BRIDGE, ROOT
 
 from bridge.capture import BadLine, read_capture
+from bridge.escs.dronecan import codec as dronecan_codec
+from bridge.escs.dronecan.driver import DronecanDriver
 
 CKESC_LOG = ROOT / "tests" / "data" / "ckesc-quad.log"
 FT_LOG = ROOT / "tests" / "data" / "ft-quad.log"
@@ -37,7 +39,9 @@ def test_ckesc_capture_text_summary() -> None:
         "4  ckesc Msg2",
         "4  ckesc Msg3",
         "40  ckesc RawCommand12b",
-        "1  not understood (another protocol)",
+        # Node 42's NodeStatus is standard DroneCAN, no longer another protocol's traffic.
+        "1  dronecan NodeStatus",
+        "0  not understood (another protocol)",
         "2  DlcError",
         "1  NotExtendedIdError",
         "1  TailByteError",
@@ -82,6 +86,61 @@ def test_protocol_forced() -> None:
     result = decode(str(CKESC_LOG), "--protocol", "ft")
     assert result.returncode == 0
     assert "72  not understood (another protocol)" in result.stdout
+
+
+def dronecan_capture(path: Path) -> Path:
+    """A candump log of DroneCAN traffic: the bridge's RawCommand for six ESCs (two frames) and
+    NodeStatus, an ESC's esc.Status (three frames) and NodeStatus, then a Status with a bad CRC."""
+    frames = DronecanDriver(range(6), clock=lambda: 0).tick_frames(0, [0.1 * i for i in range(6)])
+    esc = dronecan_codec.Sender(21)
+    status = dronecan_codec.EscStatus(1, 0, 16.5, 2.25, 300.25, -1234, 12)
+    frames += esc.frames(status) + esc.frames(dronecan_codec.NodeStatus(7, 0, 0))
+    bad = esc.frames(status)
+    bad[0].data[0] ^= 1
+    with can.Logger(path) as log:
+        for i, msg in enumerate(frames + bad):
+            msg.timestamp, msg.channel = 1795330000.0 + i / 1000, "can0"
+            log.on_message_received(msg)
+    return path
+
+
+def test_dronecan_capture(tmp_path: Path) -> None:
+    path = dronecan_capture(tmp_path / "dronecan.log")
+    result = decode(str(path), "--protocol", "dronecan")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "dronecan node 10  TransferPart  message_type=RawCommand frame=1" in out
+    assert "dronecan node 10  RawCommand  commands=0,819,1638,2457,3276,4096" in out
+    assert "dronecan node 10  NodeStatus  uptime_s=0 health=0 mode=0" in out
+    assert (
+        "dronecan node 21  EscStatus  esc_index=1 error_count=0 voltage_v=16.5 current_a=2.25 "
+        "temperature_k=300.25 rpm=-1234 power_rating_pct=12"
+    ) in out
+    assert "CrcError: DroneCAN transfer 0x10040A15 (transfer ID 1)" in out
+    summary = out[out.index("-- 10 frames") :]
+    for line in (
+        "1  dronecan EscStatus",
+        "2  dronecan NodeStatus",
+        "1  dronecan RawCommand",
+        "5  dronecan TransferPart",
+        "1  CrcError",
+        "-- CRC errors: 1; malformed lines skipped: 0",
+    ):
+        assert line in summary
+    result = decode(str(path), "--protocol", "dronecan", "--json")
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    status = next(r for r in records if r.get("type") == "EscStatus")
+    assert status["node"] == 21 and status["fields"]["rpm"] == -1234
+    assert records[-1]["summary"]["by_type"]["dronecan TransferPart"] == 5
+
+
+def test_dronecan_capture_auto(tmp_path: Path) -> None:
+    """CKESC's ID space holds DroneCAN's; auto tries CKESC, then DroneCAN, which understands
+    them. The bad CRC is DroneCAN's to report: CKESC does not know the type."""
+    path = dronecan_capture(tmp_path / "dronecan.log")
+    auto = decode(str(path)).stdout
+    assert auto == decode(str(path), "--protocol", "dronecan").stdout
+    assert "5  dronecan TransferPart" in auto and "1  CrcError" in auto
 
 
 @pytest.mark.parametrize(

@@ -24,6 +24,7 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, can_args, free_port, multicast
 from bridge.cli import main
 from bridge.config import ZenohConfig
 from bridge.escs import ckesc, ft
+from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.monitor import (
     VehicleState,
     failure_names,
@@ -98,6 +99,14 @@ FT_ESCS = {
     2: (14000, 0.2, 3.0, 12.0, 37.0, 62.0, 48.2),
     3: (-21000, -0.3, 4.5, 13.0, 38.0, 120.0, 48.3),
 }
+# DroneCAN ESC number -> (rpm, power %, volts, amps, temperature °C, NodeStatus health); the
+# ESC number is esc_index + 1, its node ID 40 + the number.
+DRONECAN_ESCS = {
+    1: (1500, 20, 24.25, 2.5, 35.0, 0),
+    2: (-2500, 40, 24.5, 5.0, 110.0, 0),
+    3: (3500, 60, 24.75, 7.5, 37.0, 3),
+}
+_dronecan_senders = {number: dronecan_codec.Sender(40 + number) for number in DRONECAN_ESCS}
 
 
 def ckesc_frames(transfer_id: int) -> list[can.Message]:
@@ -123,6 +132,19 @@ def ft_frames(transfer_id: int) -> list[can.Message]:
             ft.RealtimeData2(mos, motor, volts),
         ):
             frames.append(ft.encode(ft.FtFrame(esc_id, message)))
+    return frames
+
+
+def dronecan_frames(transfer_id: int) -> list[can.Message]:
+    frames = []
+    for number, (rpm, power, volts, amps, temp_c, health) in DRONECAN_ESCS.items():
+        sender = _dronecan_senders[number]
+        status = dronecan_codec.EscStatus(
+            number - 1, 0, volts, amps, temp_c + dronecan_codec.KELVIN_OFFSET, rpm, power
+        )
+        frames += sender.frames(status)
+        if transfer_id % 10 == 0:
+            frames += sender.frames(dronecan_codec.NodeStatus(transfer_id, health, 0))
     return frames
 
 
@@ -156,7 +178,7 @@ def can_port() -> int:
 
 @pytest.fixture
 def player(can_port: int, request: pytest.FixtureRequest) -> Iterator[EscPlayer]:
-    frames = ckesc_frames if request.param == "ckesc" else ft_frames
+    frames = {"ckesc": ckesc_frames, "ft": ft_frames, "dronecan": dronecan_frames}[request.param]
     esc_player = EscPlayer(can_port, frames)
     yield esc_player
     esc_player.close()
@@ -228,6 +250,30 @@ def test_ft_from_the_bus(can_port: int, player: EscPlayer) -> None:
     assert motors[3]["rpm"] == "-1500"
     assert motors[3]["flags"] == "overtemp"  # 120 °C motor: above [telemetry] max_temp_c
     assert motors[4]["state"] == "offline"
+
+
+@pytest.mark.parametrize("player", ["dronecan"], indirect=True)
+def test_dronecan_from_the_bus(can_port: int, player: EscPlayer) -> None:
+    result = monitor(
+        *can_args(can_port), "--protocol", "dronecan", "--escs", "4", "--duration", "1.5"
+    )
+    assert result.returncode == 0, result.stderr
+    title, rows = tables(result.stdout)[-1]
+    assert title == f"udp_multicast:{MULTICAST_GROUP}: 3/4 ESCs online"
+    motors = by_motor(rows)
+    for number, (rpm, power, volts, amps, temp_c, _) in DRONECAN_ESCS.items():
+        row = motors[number]
+        assert (row["node"], row["state"], row["rpm"]) == (str(number), "online", str(rpm))
+        assert row["V"] == f"{volts:.2f}" and row["A"] == f"{amps:.2f}"
+        assert row["MOS°C"] == f"{temp_c:.0f}"
+        assert (row["cap°C"], row["motor°C"], row["MCU°C"]) == ("-", "-", "-")
+        assert row["thr%"] == str(power if rpm > 0 else -power)
+        assert int(row["frames"]) > 10 and row["errors"] == "0"
+    assert motors[1]["flags"] == ""
+    assert motors[2]["flags"] == "overtemp"  # above [telemetry] max_temp_c
+    assert motors[3]["flags"] == "generic"  # its NodeStatus says CRITICAL
+    assert motors[4]["state"] == "offline"
+    assert "frames read, 0 malformed" in result.stdout
 
 
 @pytest.mark.parametrize("player", ["ft"], indirect=True)

@@ -8,6 +8,7 @@ decoded with the project's dialect, which has ESC_INFO and ESC_STATUS), and a Ze
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import subprocess
@@ -31,6 +32,7 @@ from conftest import (
 )
 
 from bridge.escs import ckesc, ft
+from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.mavlink import load_dialect
 
 S = ckesc.Msg1Status
@@ -237,6 +239,61 @@ def test_ft_crc_errors_count_into_error_count_and_raise_generic(
         assert info.failure_flags[2] == dialect.ESC_FAILURE_GENERIC
         assert info.failure_flags[0] == 0
         assert info.temperature[0] == 4100
+        telemetry = receiver.wait_for("ESC_TELEMETRY_1_TO_4", lambda m: m.rpm[3] != 0)
+        assert list(telemetry.rpm) == [1000, 2000, 3000, 4000]  # ArduPilot's is unsigned
+    finally:
+        escs.close()
+
+
+def test_dronecan_status_and_node_status_to_mavlink(
+    tmp_path: Path,
+    can_port: int,
+    autopilot: Autopilot,
+    receiver: MavlinkReceiver,
+    start_daemon: Callable[..., Daemon],
+) -> None:
+    """DroneCAN ESCs at nodes 30..33 (esc_index 0..3): multi-frame esc.Status transfers,
+    interleaved, and NodeStatus; ESC 2's node reports health ERROR, ESC 3 sends a Status with a
+    bad transfer CRC beside its good ones."""
+    config = tmp_path / "bridge.toml"
+    config.write_text(f'[output]\nprotocol = "dronecan"\n[mavlink]\n{EVERY_FAMILY}')
+    senders = [dronecan_codec.Sender(30 + index) for index in range(4)]
+
+    def frames(tick: int) -> list[can.Message]:
+        per_esc = []  # each ESC's transfers one after another
+        for index, sender in enumerate(senders):
+            esc = index + 1
+            status = dronecan_codec.EscStatus(
+                index, 0, 20 + esc / 4, float(esc), 273.15 + 30 + esc, -1000 * esc, 10 * esc
+            )
+            own = sender.frames(status)
+            if index == 2:
+                bad = sender.frames(status)
+                bad[0].data[0] ^= 0x5A  # the transfer CRC's low byte
+                own += bad
+            if tick % 10 == 0:
+                health = 2 if esc == 2 else 0
+                own += sender.frames(dronecan_codec.NodeStatus(tick // 50, health, 0))
+            per_esc.append(own)
+        # The ESCs' frames interleaved, as several ESCs on one bus send them.
+        return [f for group in itertools.zip_longest(*per_esc) for f in group if f is not None]
+
+    escs = Escs(can_port, frames)
+    try:
+        start_daemon("--config", str(config))
+        autopilot.start_stream(20)
+        status = receiver.wait_for("ESC_STATUS", lambda m: m.rpm[3] != 0)
+        assert list(status.rpm) == [-1000, -2000, -3000, -4000]  # signed, as the ESCs sent
+        assert list(status.voltage) == pytest.approx([20.25, 20.5, 20.75, 21.0], abs=1e-3)
+        assert list(status.current) == pytest.approx([1.0, 2.0, 3.0, 4.0], abs=1e-3)
+        info = receiver.wait_for(
+            "ESC_INFO", lambda m: m.error_count[2] >= 5 and m.failure_flags[1] != 0
+        )
+        assert info.info == 0b1111
+        assert [t / 100 for t in info.temperature] == pytest.approx([31, 32, 33, 34], abs=0.3)
+        assert info.failure_flags[1] == dialect.ESC_FAILURE_GENERIC  # health ERROR
+        assert info.failure_flags[0] == info.failure_flags[3] == 0
+        assert info.error_count[0] == info.error_count[1] == info.error_count[3] == 0
         telemetry = receiver.wait_for("ESC_TELEMETRY_1_TO_4", lambda m: m.rpm[3] != 0)
         assert list(telemetry.rpm) == [1000, 2000, 3000, 4000]  # ArduPilot's is unsigned
     finally:

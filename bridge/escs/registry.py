@@ -18,6 +18,7 @@ if TYPE_CHECKING:
 FAMILIES: Final[dict[str, str]] = {
     "ckesc": "bridge.escs.ckesc.family:CkescFamily",
     "ft": "bridge.escs.ft.family:FtFamily",
+    "dronecan": "bridge.escs.dronecan.family:DronecanFamily",
 }
 """Family name -> "module:class" of its :class:`~bridge.escs.family.EscFamily`, in the order
 the names are listed (the first is the default protocol) and IDs are claimed."""

@@ -34,3 +34,24 @@ def test_bus_load_arithmetic() -> None:
     assert load.command_bits_per_s == 400 * 160
     # 4 ESCs x (MSG1 50 Hz x 7 bytes, MSG2 10 Hz x 6 bytes, MSG3 2 Hz x 8 bytes)
     assert load.telemetry_bits_per_s == 4 * (50 * frame_bits(7) + 10 * frame_bits(6) + 2 * 160)
+
+
+def test_dronecan_bus_load_arithmetic() -> None:
+    config = with_esc_count(
+        build_config({"output": {"protocol": "dronecan"}, "mixer": {"name": "passthrough-8"}}, "v"),
+        8,
+    )
+    assert config.bitrate == 1_000_000 and config.rate_hz == 400  # the family's defaults
+    load = bus_load(config)
+    # Eight values are 14 bytes, with the transfer CRC 16: frames of 8, 8 and 3 bytes per tick,
+    # and our NodeStatus (8 bytes) once a second.
+    assert load.command_frames_per_s == 400 * 3 + 1
+    assert load.command_bits_per_s == 400 * (2 * 160 + frame_bits(3)) + 160
+    # Each ESC: esc.Status (14 bytes: 8, 8, 3) at 50 Hz, NodeStatus once a second.
+    assert load.telemetry_frames_per_s == 8 * (50 * 3 + 1)
+    assert load.telemetry_bits_per_s == 8 * (50 * (2 * 160 + frame_bits(3)) + 160)
+    # Four ESCs fit one frame; ESC numbers 5..8 alone still need slots 0..7.
+    quad = with_esc_count(build_config({"output": {"protocol": "dronecan"}}, "v"), 4)
+    assert bus_load(quad).command_frames_per_s == 401
+    high = build_config({"output": {"protocol": "dronecan"}, "escs": {"ids": [5, 6, 7, 8]}}, "v")
+    assert bus_load(with_esc_count(high, 4)).command_frames_per_s == 400 * 3 + 1
