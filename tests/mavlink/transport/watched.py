@@ -1,10 +1,12 @@
 """Shared by the transport tests: real sockets on 127.0.0.1 and real ptys (one per test).
 
 Every call into a transport under test goes through :class:`Watched`, which times it. A call
-that took more than 5 ms fails the test if it slept in the kernel (a voluntary context switch:
-it waited) or spent those 5 ms on the CPU (it spun, as pyserial's ``write`` with
+that took more than 20 ms fails the test if it slept in the kernel (a voluntary context switch:
+it waited) or spent those 20 ms on the CPU (it spun, as pyserial's ``write`` with
 ``write_timeout=0`` does on a full buffer). One that took long only because the shared machine
-preempted the thread did neither, and is tolerated.
+preempted the thread did neither, and is tolerated. The waits this catches last as long as the
+peer stalls (seconds here). Waiting for the GIL is also a voluntary switch, and a send was seen
+"blocked" for 8 ms on a machine running four test sessions at once: hence 20 ms, not less.
 
 The test modules take the fixtures with ``opened = watched.opened`` (an import would shadow
 the argument).
@@ -34,7 +36,7 @@ from bridge.mavlink.transport.base import PENDING_LIMIT_BYTES
 T = TypeVar("T")
 
 
-BLOCKED_NS = 5_000_000
+BLOCKED_NS = 20_000_000
 
 
 TIMEOUT_S = 5.0
@@ -57,7 +59,7 @@ def voluntary_switches() -> int:
 
 def measured(call: Callable[[], T]) -> tuple[T, int, bool]:
     """``call()``'s result, how long it took (ns), and whether it blocked: slept in the kernel
-    or spun on the CPU, for more than 5 ms in all."""
+    or spun on the CPU, for more than 20 ms in all."""
     switches = voluntary_switches()
     cpu_start_ns = time.thread_time_ns()
     start_ns = time.perf_counter_ns()
