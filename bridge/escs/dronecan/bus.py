@@ -1,6 +1,6 @@
 """What DroneCAN puts on the bus: the kernel filters for its telemetry, and its worst-case load
 (PROTOCOLS.md §3's frame lengths; the transfers' frame counts from
-:mod:`bridge.escs.dronecan.transfer`)."""
+:mod:`bridge.escs.uavcan_v0`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs.dronecan.transfer import frame_sizes
+from bridge.escs.uavcan_v0 import frame_sizes
 from bridge.escs.dronecan.wire import (
     NODE_STATUS_BYTES,
     STATUS_BYTES,

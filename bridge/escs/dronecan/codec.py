@@ -3,7 +3,7 @@ or another node's), ``uavcan.equipment.esc.Status`` (an ESC's telemetry) and
 ``uavcan.protocol.NodeStatus`` (any node's health, mode and uptime).
 
 Payloads are (de)serialized by the ``dronecan`` package, the DSDL reference implementation for
-Python; this module adds the transfer layer (:mod:`bridge.escs.dronecan.transfer`) and the
+Python; this module adds the transfer layer (:mod:`bridge.escs.uavcan_v0`) and the
 records. What the output loop sends is encoded by hand in :mod:`bridge.escs.dronecan.wire`
 (why is said there), and the tests check the two against each other.
 
@@ -40,7 +40,7 @@ from dronecan.transport import bits_from_bytes
 
 from bridge.errors import DlcError, ValueRangeError
 from bridge.escs.ckesc import TransferIds, message_id, parse_id
-from bridge.escs.dronecan.transfer import Reassembler, Transfer
+from bridge.escs.uavcan_v0 import Reassembler, Transfer
 from bridge.escs.dronecan.wire import (
     COMMAND_MAX,
     COMMAND_MIN,

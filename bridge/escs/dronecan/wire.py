@@ -16,7 +16,7 @@ stream, each byte filled from its top bit. A field of more than 8 bits is writte
 little-endian bytes, the last one holding only the remaining bits; a field of up to 8 bits is
 written as its bits, top bit first. A RawCommand's ``cmd`` (int14[<=20]) is its last field, so
 its length is not sent (tail array optimization): N commands are ceil(14 N / 8) bytes, one
-frame up to 4 commands, a multi-frame transfer beyond (:mod:`bridge.escs.dronecan.transfer`).
+frame up to 4 commands, a multi-frame transfer beyond (:mod:`bridge.escs.uavcan_v0`).
 
 Constants follow ArduPilot's ``AP_DroneCAN`` where the standard leaves a choice: RawCommand at
 priority 7 (``CANARD_TRANSFER_PRIORITY_HIGH - 1``, "one higher than high priority", above its
@@ -34,7 +34,7 @@ import can
 
 from bridge.errors import ValueRangeError
 from bridge.escs.ckesc import message_id
-from bridge.escs.dronecan.transfer import frames_data, signature_crc
+from bridge.escs.uavcan_v0 import frames_data, signature_crc
 
 # Data type IDs and signatures (DSDL: uavcan/equipment/esc/1030.RawCommand.uavcan, ...).
 TYPE_RAW_COMMAND: Final = 1030

@@ -1,4 +1,4 @@
-"""The UAVCAN v0 transfer layer (bridge/escs/dronecan/transfer.py) against the ``dronecan``
+"""The UAVCAN v0 transfer layer (bridge/escs/uavcan_v0.py) against the ``dronecan``
 package's own: the CRC, the signature's CRC start, the split into frames, and the reassembly
 state machine's round trips and refusals."""
 
@@ -14,7 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.errors import CrcError, DlcError, TailByteError, ValueRangeError
-from bridge.escs.dronecan.transfer import Reassembler, crc16, frame_sizes, frames_data
+from bridge.escs.uavcan_v0 import Reassembler, crc16, frame_sizes, frames_data
 from bridge.escs.dronecan.wire import CRC_START, SIGNATURE_RAW_COMMAND, TYPE_RAW_COMMAND
 
 DC: Any = dronecan
