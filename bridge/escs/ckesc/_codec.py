@@ -39,7 +39,6 @@ from bridge.escs.ckesc._wire import (
     HOST_NODE_ID,
     MAX_CHANNELS,
     MAX_GROUP,
-    MAX_NODE_ID,
     MESSAGE_TYPE_RANGE,
     PRIORITY_HIGHEST,
     SERVICE_SET_ID,
@@ -48,9 +47,8 @@ from bridge.escs.ckesc._wire import (
     TYPE_RAW_COMMAND_12B,
     TYPE_RAW_COMMAND_14B,
     _field,
-    message_id,
-    tail_byte,
 )
+from bridge.escs.uavcan_v0 import MAX_NODE_ID, message_id, tail_byte
 
 
 def _codec_of(message: CkescMessage) -> _Codec:

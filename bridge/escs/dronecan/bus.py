@@ -9,7 +9,6 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs.uavcan_v0 import frame_sizes
 from bridge.escs.dronecan.wire import (
     NODE_STATUS_BYTES,
     STATUS_BYTES,
@@ -20,6 +19,7 @@ from bridge.escs.dronecan.wire import (
 )
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids
+from bridge.escs.uavcan_v0 import frame_sizes
 
 ESC_NUMBERS: Final = range(1, 21)
 _TYPE_MASK: Final = 0xFFFF << 8 | 0x80  # the message type, and bit 7 clear: a message frame

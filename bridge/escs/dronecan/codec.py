@@ -39,8 +39,6 @@ from dronecan.transport import Transfer as _DcTransfer
 from dronecan.transport import bits_from_bytes
 
 from bridge.errors import DlcError, ValueRangeError
-from bridge.escs.ckesc import TransferIds, message_id, parse_id
-from bridge.escs.uavcan_v0 import Reassembler, Transfer
 from bridge.escs.dronecan.wire import (
     COMMAND_MAX,
     COMMAND_MIN,
@@ -57,6 +55,7 @@ from bridge.escs.dronecan.wire import (
     owns,
     raw_command_bytes,
 )
+from bridge.escs.uavcan_v0 import Reassembler, Transfer, TransferIds, message_id, parse_id
 
 __all__ = [
     "KELVIN_OFFSET",

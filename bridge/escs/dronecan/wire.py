@@ -33,8 +33,7 @@ from typing import Final
 import can
 
 from bridge.errors import ValueRangeError
-from bridge.escs.ckesc import message_id
-from bridge.escs.uavcan_v0 import frames_data, signature_crc
+from bridge.escs.uavcan_v0 import frames_data, message_id, signature_crc
 
 # Data type IDs and signatures (DSDL: uavcan/equipment/esc/1030.RawCommand.uavcan, ...).
 TYPE_RAW_COMMAND: Final = 1030
@@ -60,7 +59,8 @@ DEFAULT_NODE_ID: Final = 10
 """The bridge's own node ID unless configured: ArduPilot's default (``CAN_D1_UC_NODE``)."""
 NODE_IDS: Final = range(1, 126)
 """Node IDs the bridge can take: 1..125 (0 is anonymous; 126 and 127 are customarily left to
-maintenance tools, and CKESC reserves them: :func:`bridge.escs.ckesc.message_id` refuses them)."""
+maintenance tools, and CKESC reserves them: :func:`~bridge.escs.uavcan_v0.message_id` refuses
+them)."""
 MAX_COMMANDS: Final = 20
 """RawCommand carries up to 20 commands (``int14[<=20] cmd``): ESC indices 0..19."""
 COMMAND_MAX: Final = 8191

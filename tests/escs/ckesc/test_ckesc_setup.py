@@ -12,7 +12,7 @@ import can
 import pytest
 
 from bridge.errors import LinkError, NoAnswerError, RefusedError, SetupError, WrongNodeError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import CkescFrame, Rotation, ThrottleSource
 from bridge.escs.ckesc.setup import CanTestResult, CkescClient, ScannedEsc, scan_warnings
 from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc
@@ -165,7 +165,7 @@ def test_scan_warns_of_shared_throttle_channels() -> None:
 def spin(channel: str, stop: threading.Event) -> None:
     """Throttle 600 on channel 1 every 20 ms until ``stop``."""
     bus = can.Bus(interface="virtual", channel=channel)
-    tids = ckesc.TransferIds()
+    tids = uavcan_v0.TransferIds()
     while not stop.wait(0.02):
         bus.send(ckesc.encode_raw_12b(1, [600], tids.next(ckesc.TYPE_RAW_COMMAND_12B)))
     bus.shutdown()
