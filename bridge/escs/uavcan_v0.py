@@ -36,6 +36,13 @@ from typing import Final
 
 from bridge.errors import CrcError, DlcError, FrameError, TailByteError, ValueRangeError
 
+PRIORITY_HIGHEST: Final = 0
+PRIORITY_HIGH: Final = 8
+PRIORITY_MEDIUM: Final = 16
+PRIORITY_LOW: Final = 24
+PRIORITY_LOWEST: Final = 31
+"""The five named priority levels (libcanard's ``CANARD_TRANSFER_PRIORITY_*``; CKESC's
+document uses the same); any of 0..31 is valid, lower wins arbitration."""
 MAX_NODE_ID: Final = 0x7D
 """Highest usable node ID (0x7E and 0x7F are reserved)."""
 START_OF_TRANSFER: Final = 0x80
@@ -49,7 +56,7 @@ SESSION_MASK: Final = (1 << 24) - 1
 """The CAN ID bits that name a transfer's session: all but the 5 priority bits."""
 
 
-_PRIORITY: Final = range(32)
+_PRIORITY: Final = range(PRIORITY_LOWEST + 1)
 _TYPE_ID: Final = range(0x1_0000)
 _SERVICE_TYPE: Final = range(0x100)
 _NODE: Final = range(MAX_NODE_ID + 1)

@@ -16,7 +16,8 @@ are little-endian. Every frame but RawCommand_10b ends in a tail byte ``0xC0 | t
 (single-frame transfer); MSG_EXP12 uses its tail byte's transfer ID for a record kind. That
 framing is UAVCAN v0's, shared with DroneCAN in :mod:`bridge.escs.uavcan_v0`: the ID helpers
 ``message_id``, ``service_id``, ``parse_id`` (→ ``CanId``), ``tail_byte``, ``TransferIds``
-(one 0..31 counter per type ID) and ``MAX_NODE_ID`` are there, not here.
+(one 0..31 counter per type ID), ``MAX_NODE_ID`` and the ``PRIORITY_*`` levels are there, not
+here.
 
 Public API:
 
@@ -130,11 +131,6 @@ from bridge.escs.ckesc._wire import (
     MAX_CHANNELS,
     MAX_GROUP,
     MESSAGE_TYPE_RANGE,
-    PRIORITY_HIGH,
-    PRIORITY_HIGHEST,
-    PRIORITY_LOW,
-    PRIORITY_LOWEST,
-    PRIORITY_MEDIUM,
     SERVICE_CLEAR_TEMP_RECORD,
     SERVICE_ESC_INFO,
     SERVICE_EXPAND_SET,
@@ -191,11 +187,6 @@ __all__ = [
     "MAX_CHANNELS",
     "MAX_GROUP",
     "MESSAGE_TYPE_RANGE",
-    "PRIORITY_HIGH",
-    "PRIORITY_HIGHEST",
-    "PRIORITY_LOW",
-    "PRIORITY_LOWEST",
-    "PRIORITY_MEDIUM",
     "SERVICE_CLEAR_TEMP_RECORD",
     "SERVICE_ESC_INFO",
     "SERVICE_EXPAND_SET",

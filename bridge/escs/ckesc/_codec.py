@@ -40,7 +40,6 @@ from bridge.escs.ckesc._wire import (
     MAX_CHANNELS,
     MAX_GROUP,
     MESSAGE_TYPE_RANGE,
-    PRIORITY_HIGHEST,
     SERVICE_SET_ID,
     SERVICE_TYPE_RANGE,
     TYPE_RAW_COMMAND_10B,
@@ -48,7 +47,7 @@ from bridge.escs.ckesc._wire import (
     TYPE_RAW_COMMAND_14B,
     _field,
 )
-from bridge.escs.uavcan_v0 import MAX_NODE_ID, message_id, tail_byte
+from bridge.escs.uavcan_v0 import MAX_NODE_ID, PRIORITY_HIGHEST, message_id, tail_byte
 
 
 def _codec_of(message: CkescMessage) -> _Codec:

@@ -10,16 +10,10 @@ from typing import Final, TypeAlias, TypeVar
 from bridge.errors import (
     ValueRangeError,
 )
-from bridge.escs.uavcan_v0 import MAX_NODE_ID, MAX_TRANSFER_ID
+from bridge.escs.uavcan_v0 import MAX_NODE_ID, MAX_TRANSFER_ID, PRIORITY_LOWEST
 
 # --------------------------------------------------------------------------------------------
 # Protocol constants (PROTOCOLS.md §1.1, §1.3)
-
-PRIORITY_HIGHEST: Final = 0
-PRIORITY_HIGH: Final = 8
-PRIORITY_MEDIUM: Final = 16
-PRIORITY_LOW: Final = 24
-PRIORITY_LOWEST: Final = 31
 
 HOST_NODE_ID: Final = 0
 """The bridge's own node ID; every CKESC request and throttle command comes from node 0."""

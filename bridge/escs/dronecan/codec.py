@@ -46,8 +46,6 @@ from bridge.escs.dronecan.wire import (
     MAX_COMMANDS,
     NODE_STATUS_BYTES,
     PRIORITY_ESC_COMMAND,
-    PRIORITY_LOWEST,
-    PRIORITY_MEDIUM,
     STATUS_BYTES,
     TYPE_ESC_STATUS,
     TYPE_NODE_STATUS,
@@ -55,7 +53,15 @@ from bridge.escs.dronecan.wire import (
     owns,
     raw_command_bytes,
 )
-from bridge.escs.uavcan_v0 import Reassembler, Transfer, TransferIds, message_id, parse_id
+from bridge.escs.uavcan_v0 import (
+    PRIORITY_LOWEST,
+    PRIORITY_MEDIUM,
+    Reassembler,
+    Transfer,
+    TransferIds,
+    message_id,
+    parse_id,
+)
 
 __all__ = [
     "KELVIN_OFFSET",

@@ -33,7 +33,13 @@ from typing import Final
 import can
 
 from bridge.errors import ValueRangeError
-from bridge.escs.uavcan_v0 import frames_data, message_id, signature_crc
+from bridge.escs.uavcan_v0 import (
+    PRIORITY_HIGH,
+    PRIORITY_LOWEST,
+    frames_data,
+    message_id,
+    signature_crc,
+)
 
 # Data type IDs and signatures (DSDL: uavcan/equipment/esc/1030.RawCommand.uavcan, ...).
 TYPE_RAW_COMMAND: Final = 1030
@@ -49,9 +55,6 @@ CRC_START: Final[dict[int, int]] = {
 }
 """The transfer CRC's start per data type ID (its signature's CRC)."""
 
-PRIORITY_HIGH: Final = 8
-PRIORITY_MEDIUM: Final = 16
-PRIORITY_LOWEST: Final = 31
 PRIORITY_ESC_COMMAND: Final = PRIORITY_HIGH - 1
 """ArduPilot's RawCommand priority: one above its actuator commands."""
 

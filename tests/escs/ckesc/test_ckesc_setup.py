@@ -66,7 +66,7 @@ def info_from(node: int) -> Callable[[CkescFrame], can.Message]:
     """An ESC Information response from ``node`` to any request, with its transfer ID."""
 
     def reply(request: CkescFrame) -> can.Message:
-        response = CkescFrame(ckesc.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO)
+        response = CkescFrame(uavcan_v0.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO)
         return ckesc.encode(response)
 
     return reply
@@ -95,7 +95,7 @@ def test_an_answer_with_another_transfer_id_is_not_the_answer(
     def stale(request: CkescFrame) -> can.Message:
         assert request.transfer_id is not None
         earlier = (request.transfer_id - 1) % 32
-        return ckesc.encode(CkescFrame(ckesc.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
+        return ckesc.encode(CkescFrame(uavcan_v0.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
 
     peer = Peer(channel, stale)
     try:

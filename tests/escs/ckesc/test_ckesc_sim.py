@@ -75,7 +75,7 @@ from bridge.escs.ckesc.sim import ESC_INFO, ReportMode, SimCkesc, default_flash
 R = TypeVar("R")
 FULL_V = 16.8  # a full 4S pack
 S = Msg1Status
-MEDIUM, LOW, LOWEST = ckesc.PRIORITY_MEDIUM, ckesc.PRIORITY_LOW, ckesc.PRIORITY_LOWEST
+MEDIUM, LOW, LOWEST = uavcan_v0.PRIORITY_MEDIUM, uavcan_v0.PRIORITY_LOW, uavcan_v0.PRIORITY_LOWEST
 
 
 class Bench:
