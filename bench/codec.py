@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import can
 from _stats import percentile
 
-from bridge.escs import ckesc, ft
+from bridge.escs import ckesc, ft, uavcan_v0
 
 BUS_SATURATION_FRAMES_PER_S = 6_250
 TARGET_FRAMES_PER_S = 200_000
@@ -91,7 +91,7 @@ def _ckesc_telemetry(frames: int) -> list[can.Message]:
     out = []
     for i in range(frames):
         frame = ckesc.CkescFrame(
-            priority=ckesc.PRIORITY_LOWEST,
+            priority=uavcan_v0.PRIORITY_LOWEST,
             source_node=1 + i % 20,
             destination_node=None,
             transfer_id=i & 31,

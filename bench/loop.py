@@ -42,7 +42,7 @@ import can
 from _common import GROUP, bridge_command, children, cpu_seconds, free_port
 from _stats import percentile
 
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 
 INPUT_RATE_HZ = 400
 TELEMETRY_HZ = (50, 10, 2)  # MSG1, MSG2, MSG3 per ESC
@@ -103,7 +103,7 @@ def telemetry_worker(port: int, n_escs: int, seconds: float) -> None:
     )
     for node in range(1, n_escs + 1):
         for hz, message in zip(TELEMETRY_HZ, messages, strict=True):
-            frame = ckesc.CkescFrame(ckesc.PRIORITY_LOWEST, node, None, 0, message)
+            frame = ckesc.CkescFrame(uavcan_v0.PRIORITY_LOWEST, node, None, 0, message)
             frames.append((1.0 / hz, ckesc.encode(frame)))
     start = time.monotonic()
     due = [start + i * 0.0003 for i in range(len(frames))]

@@ -84,7 +84,7 @@ from _stats import percentile
 from can.interfaces.udp_multicast.utils import unpack_message
 
 from bridge.errors import BridgeError, CodecError
-from bridge.escs import ckesc, ft
+from bridge.escs import ckesc, ft, uavcan_v0
 from bridge.mavlink import load_dialect
 from bridge.sim.load import PRESETS, LoadReport, preset, stat_fields
 
@@ -529,7 +529,7 @@ def analyse(run: Run, commands: list[Command], sends: list[float], t0: float, t1
         for a, b in itertools.pairwise(frames):
             run.period_err_us.append(abs(b.stamp - a.stamp - period) * 1e6)
             if a.transfer_id >= 0 and b.transfer_id >= 0:
-                tid_gaps += (b.transfer_id - a.transfer_id - 1) % (ckesc.MAX_TRANSFER_ID + 1)
+                tid_gaps += (b.transfer_id - a.transfer_id - 1) % (uavcan_v0.MAX_TRANSFER_ID + 1)
         intervals += len(frames) - 1
         span += frames[-1].stamp - frames[0].stamp
     run.rate_hz = intervals / span if span > 0 else float("nan")

@@ -10,7 +10,9 @@ which imports it in a fresh interpreter and looks at what came along:
 - the output loop's process imports nothing it does not run: no CLI, daemon, publishers,
   monitor, simulator, Zenoh or rich;
 - nothing outside ``bridge/escs/`` names an ESC family: the families are found through
-  ``bridge.escs.registry``.
+  ``bridge.escs.registry``;
+- no family imports another: what two families share (the UAVCAN v0 framing, the driver
+  protocol, the filters) is a module directly under ``bridge/escs/``.
 """
 
 from __future__ import annotations
@@ -109,8 +111,8 @@ def test_no_module_imports_itself_back() -> None:
 
 
 PURE = re.compile(
-    r"bridge\.(mixing(\..*)?|telemetry\.state|output\.safety|escs\.(family|registry)"
-    r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|transfer|wire|telemetry))$"
+    r"bridge\.(mixing(\..*)?|telemetry\.state|output\.safety|escs\.(family|registry|uavcan_v0)"
+    r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
 )
 """The pure layers: no I/O of their own, so they run (and are tested) anywhere."""
 IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|output_loop|daemon|cli(\..*)?|config)$")
@@ -143,6 +145,38 @@ def test_the_hot_loop_imports_nothing_it_does_not_run() -> None:
     ).stdout.split()
     assert HOT_LOOP in loaded
     assert [m for m in loaded if NOT_ON_THE_HOT_LOOP.match(m)] == []
+
+
+FAMILY = re.compile(r"bridge\.escs\.(\w+)\.")
+"""A module in a family's folder: ``bridge.escs.<family>.<module>`` (group 1 the family)."""
+
+
+def family_of(module: str) -> str | None:
+    """The family whose folder holds ``module`` (its package ``__init__`` included), or None
+    for a module directly under ``bridge/escs/`` or outside it."""
+    found = FAMILY.match(module + ".")
+    return found.group(1) if found and f"bridge.escs.{found.group(1)}" in PACKAGES else None
+
+
+PACKAGES = {m for m, p in MODULES.items() if p.name == "__init__.py"}
+
+
+def test_no_family_imports_another() -> None:
+    crossing = [
+        f"{module} imports {target}"
+        for module in MODULES
+        if (family := family_of(module)) is not None
+        for target in sorted(imports(module))
+        if family_of(target) not in (None, family)
+    ]
+    assert crossing == []
+
+
+def test_every_family_folder_is_seen() -> None:
+    families = {family_of(m) for m in MODULES} - {None}
+    assert {"ckesc", "ft", "dronecan"} <= families
+    assert family_of("bridge.escs.uavcan_v0") is None
+    assert family_of("bridge.escs.family") is None
 
 
 VENDOR = re.compile(r"ckesc|flipsky|dronecan|\bft(_\w+)?\b", re.IGNORECASE)

@@ -42,7 +42,7 @@ from bridge.can_io import (
 )
 from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import ckesc, ft, registry, uavcan_v0
 from bridge.escs.ft.sim import SimFt
 from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
@@ -217,13 +217,13 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
             can_id = (
                 ft.can_id(esc, rng.choice(FT_TELEMETRY))
                 if protocol == "ft"
-                else ckesc.message_id(31, rng.choice(CKESC_TELEMETRY), esc)
+                else uavcan_v0.message_id(31, rng.choice(CKESC_TELEMETRY), esc)
             )
         elif kind == 1:  # the bridge's own commands
             can_id = (
                 ft.can_id(rng.choice(ours), rng.choice(FT_COMMANDS))
                 if protocol == "ft"
-                else ckesc.message_id(0, rng.choice(CKESC_COMMANDS), 0)
+                else uavcan_v0.message_id(0, rng.choice(CKESC_COMMANDS), 0)
             )
         elif kind == 2:  # our telemetry ID, but an 11-bit frame
             can_id, extended = ft.can_id(rng.choice(ours), FT_TELEMETRY[0]) & 0x7FF, False
@@ -231,7 +231,7 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
             can_id = rng.randrange(1, 0x2000) << 16 | ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
         elif kind == 4:  # the other protocol's telemetry from one of our IDs
             can_id = (
-                ckesc.message_id(31, ckesc.TYPE_MSG1, rng.choice(ours))
+                uavcan_v0.message_id(31, ckesc.TYPE_MSG1, rng.choice(ours))
                 if protocol == "ft"
                 else ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
             )
@@ -364,13 +364,13 @@ def test_filters_pass_exactly_our_telemetry(
 def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[int]]:
     """(every telemetry ID from ``ids``, every command ID the state reads back, other IDs)."""
     if protocol == "ckesc":
-        telemetry = [ckesc.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
-        commands = [ckesc.message_id(0, t, 0) for t in CKESC_COMMANDS]
+        telemetry = [uavcan_v0.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
+        commands = [uavcan_v0.message_id(0, t, 0) for t in CKESC_COMMANDS]
         others = [
-            ckesc.message_id(31, ckesc.TYPE_MSG1, 9),  # not our node
-            ckesc.message_id(16, ckesc.TYPE_GET_ESC_ID, ids[0]),  # an answer, not telemetry
-            ckesc.service_id(16, ckesc.SERVICE_ESC_INFO, False, 0, ids[0]),  # a response
-            ckesc.message_id(0, ckesc.TYPE_RAW_COMMAND_12B, 5),  # a command from another host
+            uavcan_v0.message_id(31, ckesc.TYPE_MSG1, 9),  # not our node
+            uavcan_v0.message_id(16, ckesc.TYPE_GET_ESC_ID, ids[0]),  # an answer, not telemetry
+            uavcan_v0.service_id(16, ckesc.SERVICE_ESC_INFO, False, 0, ids[0]),  # a response
+            uavcan_v0.message_id(0, ckesc.TYPE_RAW_COMMAND_12B, 5),  # a command from another host
         ]
     else:
         telemetry = [ft.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]

@@ -26,6 +26,19 @@ What a family provides, by who needs it:
   none), :meth:`EscFamily.describe_command` and :meth:`EscFamily.describe_esc` (for ``esc
   spin`` and the motor test), :meth:`EscFamily.learn_node_ids` (may learn none).
 
+Where the interface is thin, and how the families live with it (not yet hooks of its own):
+
+- :meth:`EscFamily.decode` takes one frame and returns one record, as if a frame were a
+  message. DroneCAN's transfers span several frames, so its family keeps one stateful decoder
+  per thread (each thread reads one stream: the CAN reader, ``decode``, the plot) and returns a
+  ``TransferPart`` for each frame before a transfer's last. A per-stream ``decoder()`` (created
+  once per stream by each caller, stateless for CKESC and FT) would say so in the interface.
+- Frames a family must send on a clock of its own rather than per command: DroneCAN's own
+  NodeStatus, once a second, which its driver appends to a tick's frames by its own clock. A
+  periodic-frames hook beside :meth:`EscFamily.driver` would let the output loop schedule them.
+- The UAVCAN v0 framing CKESC and DroneCAN share is :mod:`bridge.escs.uavcan_v0`, beside this
+  module: no family imports another.
+
 A family module imports no part of the bridge outside ``bridge/escs/`` at import time except
 :mod:`bridge.errors` and, for its keys, :mod:`bridge.config`; its simulator, set-up client and
 CLI commands are imported only when asked for.

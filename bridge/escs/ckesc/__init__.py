@@ -13,12 +13,14 @@ Wire format in one paragraph: 29-bit data frames only. A message (broadcast) fra
 priority (5 bits) · type ID (16) · 0 · source node (7); a service frame's ID is priority ·
 service type (8) · request flag · destination node (7) · 1 · source node. All multi-byte fields
 are little-endian. Every frame but RawCommand_10b ends in a tail byte ``0xC0 | transfer_id``
-(single-frame transfer); MSG_EXP12 uses its tail byte's transfer ID for a record kind.
+(single-frame transfer); MSG_EXP12 uses its tail byte's transfer ID for a record kind. That
+framing is UAVCAN v0's, shared with DroneCAN in :mod:`bridge.escs.uavcan_v0`: the ID helpers
+``message_id``, ``service_id``, ``parse_id`` (→ ``CanId``), ``tail_byte``, ``TransferIds``
+(one 0..31 counter per type ID), ``MAX_NODE_ID`` and the ``PRIORITY_*`` levels are there, not
+here.
 
 Public API:
 
-- ID helpers :func:`message_id`, :func:`service_id`, :func:`parse_id` (→ :class:`CanId`),
-  :func:`tail_byte`, and :class:`TransferIds` (one 0..31 counter per type ID).
 - One frozen record class per payload (:data:`CkescMessage` is their union), wrapped in a
   :class:`CkescFrame` envelope; :func:`decode` and :func:`encode` convert envelopes.
 - Throttle hot path: :func:`encode_raw_12b`, :func:`encode_raw_14b`, :func:`encode_raw_10b`
@@ -128,14 +130,7 @@ from bridge.escs.ckesc._wire import (
     HOST_NODE_ID,
     MAX_CHANNELS,
     MAX_GROUP,
-    MAX_NODE_ID,
-    MAX_TRANSFER_ID,
     MESSAGE_TYPE_RANGE,
-    PRIORITY_HIGH,
-    PRIORITY_HIGHEST,
-    PRIORITY_LOW,
-    PRIORITY_LOWEST,
-    PRIORITY_MEDIUM,
     SERVICE_CLEAR_TEMP_RECORD,
     SERVICE_ESC_INFO,
     SERVICE_EXPAND_SET,
@@ -173,7 +168,6 @@ from bridge.escs.ckesc._wire import (
     TYPE_RAW_COMMAND_10B,
     TYPE_RAW_COMMAND_12B,
     TYPE_RAW_COMMAND_14B,
-    CanId,
     CanTestOption,
     ExpandSetCommand,
     LedColor,
@@ -183,11 +177,6 @@ from bridge.escs.ckesc._wire import (
     SelfTestFault,
     TempRecordKind,
     ThrottleSource,
-    TransferIds,
-    message_id,
-    parse_id,
-    service_id,
-    tail_byte,
 )
 
 __all__ = [
@@ -197,14 +186,7 @@ __all__ = [
     "HOST_NODE_ID",
     "MAX_CHANNELS",
     "MAX_GROUP",
-    "MAX_NODE_ID",
-    "MAX_TRANSFER_ID",
     "MESSAGE_TYPE_RANGE",
-    "PRIORITY_HIGH",
-    "PRIORITY_HIGHEST",
-    "PRIORITY_LOW",
-    "PRIORITY_LOWEST",
-    "PRIORITY_MEDIUM",
     "SERVICE_CLEAR_TEMP_RECORD",
     "SERVICE_ESC_INFO",
     "SERVICE_EXPAND_SET",
@@ -242,7 +224,6 @@ __all__ = [
     "TYPE_RAW_COMMAND_10B",
     "TYPE_RAW_COMMAND_12B",
     "TYPE_RAW_COMMAND_14B",
-    "CanId",
     "CanTestOption",
     "CanTestReport",
     "CanTestRequest",
@@ -301,17 +282,12 @@ __all__ = [
     "ThrottleSelectRequest",
     "ThrottleSelectResponse",
     "ThrottleSource",
-    "TransferIds",
     "decode",
     "default_priority",
     "encode",
     "encode_raw_10b",
     "encode_raw_12b",
     "encode_raw_14b",
-    "message_id",
-    "parse_id",
     "raw_12b_groups",
-    "service_id",
-    "tail_byte",
     "type_id_of",
 ]

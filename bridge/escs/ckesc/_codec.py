@@ -39,18 +39,15 @@ from bridge.escs.ckesc._wire import (
     HOST_NODE_ID,
     MAX_CHANNELS,
     MAX_GROUP,
-    MAX_NODE_ID,
     MESSAGE_TYPE_RANGE,
-    PRIORITY_HIGHEST,
     SERVICE_SET_ID,
     SERVICE_TYPE_RANGE,
     TYPE_RAW_COMMAND_10B,
     TYPE_RAW_COMMAND_12B,
     TYPE_RAW_COMMAND_14B,
     _field,
-    message_id,
-    tail_byte,
 )
+from bridge.escs.uavcan_v0 import MAX_NODE_ID, PRIORITY_HIGHEST, message_id, tail_byte
 
 
 def _codec_of(message: CkescMessage) -> _Codec:

@@ -11,14 +11,11 @@ from bridge.escs.ckesc._records import (
     CkescMessage,
 )
 from bridge.escs.ckesc._wire import (
-    PRIORITY_HIGHEST,
-    PRIORITY_LOW,
-    PRIORITY_LOWEST,
-    PRIORITY_MEDIUM,
     _Allowed,
     _Buf,
     _field,
 )
+from bridge.escs.uavcan_v0 import PRIORITY_HIGHEST, PRIORITY_LOW, PRIORITY_LOWEST, PRIORITY_MEDIUM
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,7 +11,7 @@ from typing import Final, TypeVar
 from bridge.errors import (
     ValueRangeError,
 )
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import (
     EscInfoResponse,
     ExpandSetCommand,
@@ -232,11 +232,11 @@ def scan_warnings(escs: Collection[ScannedEsc]) -> list[str]:
 
 
 def _check_node(node_id: object) -> int:
-    if isinstance(node_id, int) and 1 <= node_id <= ckesc.MAX_NODE_ID:
+    if isinstance(node_id, int) and 1 <= node_id <= uavcan_v0.MAX_NODE_ID:
         return node_id
     raise ValueRangeError(
-        f"node = {node_id!r} is not in 1..{ckesc.MAX_NODE_ID} (0 is the host, "
-        f"{ckesc.MAX_NODE_ID + 1} and {ckesc.MAX_NODE_ID + 2} are reserved)"
+        f"node = {node_id!r} is not in 1..{uavcan_v0.MAX_NODE_ID} (0 is the host, "
+        f"{uavcan_v0.MAX_NODE_ID + 1} and {uavcan_v0.MAX_NODE_ID + 2} are reserved)"
     )
 
 

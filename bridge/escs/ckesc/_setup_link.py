@@ -17,7 +17,7 @@ from bridge.errors import (
     RefusedError,
     WrongNodeError,
 )
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import (
     CkescFrame,
     CkescMessage,
@@ -44,7 +44,7 @@ class ServiceLink:
     bus: can.BusABC
     timeout_s: float
     host_node: int
-    _tids: ckesc.TransferIds
+    _tids: uavcan_v0.TransferIds
 
     # -- the wire ---------------------------------------------------------------------------
 

@@ -1,32 +1,24 @@
-"""CKESC wire constants, enumerations, range checks, CAN IDs, tail bytes and transfer IDs
-(PROTOCOLS.md §1.1, §1.3); the package docstring describes the protocol."""
+"""CKESC wire constants, enumerations and range checks (PROTOCOLS.md §1.1, §1.3); the package
+docstring describes the protocol. The CAN ID, tail byte and transfer IDs are UAVCAN v0's, in
+:mod:`bridge.escs.uavcan_v0`."""
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 from typing import Final, TypeAlias, TypeVar
 
 from bridge.errors import (
     ValueRangeError,
 )
+from bridge.escs.uavcan_v0 import MAX_NODE_ID, MAX_TRANSFER_ID, PRIORITY_LOWEST
 
 # --------------------------------------------------------------------------------------------
 # Protocol constants (PROTOCOLS.md §1.1, §1.3)
-
-PRIORITY_HIGHEST: Final = 0
-PRIORITY_HIGH: Final = 8
-PRIORITY_MEDIUM: Final = 16
-PRIORITY_LOW: Final = 24
-PRIORITY_LOWEST: Final = 31
 
 HOST_NODE_ID: Final = 0
 """The bridge's own node ID; every CKESC request and throttle command comes from node 0."""
 FACTORY_NODE_ID: Final = 0x7D
 """An ESC's node ID as shipped; an ESC at this ID sends no telemetry."""
-MAX_NODE_ID: Final = 0x7D
-"""Highest usable node ID (0x7E and 0x7F are reserved)."""
-MAX_TRANSFER_ID: Final = 31
 
 MESSAGE_TYPE_RANGE: Final = range(20000, 21000)
 """UAVCAN v0's vendor message type IDs, which CKESC uses; other message types are not ours."""
@@ -90,8 +82,6 @@ _U32 = range(0x1_0000_0000)
 _NIBBLE = range(0x10)
 _BOOL = range(2)
 _PRIORITY = range(PRIORITY_LOWEST + 1)
-_TYPE_ID = _U16
-_SERVICE_TYPE = _U8
 _NODE = range(MAX_NODE_ID + 1)
 _ESC_NODE = range(1, MAX_NODE_ID + 1)
 _TRANSFER_ID = range(MAX_TRANSFER_ID + 1)
@@ -285,7 +275,7 @@ _EXPAND_SET_VALUES = tuple(ExpandSetCommand)
 _TEMP_RECORD_KIND_VALUES = tuple(TempRecordKind)
 
 # --------------------------------------------------------------------------------------------
-# Range checks shared by the ID helpers and the encoders
+# Range checks shared by the encoders
 
 
 def _describe(allowed: _Allowed) -> str:
@@ -327,106 +317,3 @@ def _field_centi(record: object, name: str) -> int:
     if isinstance(value, int | float) and 0 <= value <= 655.35:
         return round(value * 100)
     raise ValueRangeError(f"{type(record).__name__}.{name} = {value!r} is not in 0..655.35")
-
-
-# --------------------------------------------------------------------------------------------
-# CAN ID, tail byte, transfer IDs
-
-
-@dataclass(frozen=True, slots=True)
-class CanId:
-    """The fields of a UAVCAN v0 CAN ID (PROTOCOLS.md §1.1).
-
-    ``type_id`` is the message type ID (16 bits) or the service type ID (8 bits);
-    ``destination_node`` and ``is_request`` are ``None`` for message frames.
-    """
-
-    priority: int
-    is_service: bool
-    type_id: int
-    source_node: int
-    destination_node: int | None
-    is_request: bool | None
-
-
-def message_id(priority: int, type_id: int, source_node: int) -> int:
-    """The 29-bit CAN ID of a message (broadcast) frame.
-
-    Raises:
-        ValueRangeError: priority outside 0..31, type_id outside 0..65535, or source_node
-            outside 0..0x7D.
-    """
-    return (
-        _check("priority", priority, _PRIORITY) << 24
-        | _check("type_id", type_id, _TYPE_ID) << 8
-        | _check("source_node", source_node, _NODE)
-    )
-
-
-def service_id(
-    priority: int, service_type: int, is_request: bool, destination_node: int, source_node: int
-) -> int:
-    """The 29-bit CAN ID of a service request or response frame.
-
-    Raises:
-        ValueRangeError: priority outside 0..31, service_type outside 0..255, or a node ID
-            outside 0..0x7D.
-    """
-    return (
-        _check("priority", priority, _PRIORITY) << 24
-        | _check("service_type", service_type, _SERVICE_TYPE) << 16
-        | (0x8000 if is_request else 0)
-        | _check("destination_node", destination_node, _NODE) << 8
-        | 0x80
-        | _check("source_node", source_node, _NODE)
-    )
-
-
-def parse_id(arbitration_id: int) -> CanId:
-    """Split a 29-bit CAN ID into its UAVCAN v0 fields.
-
-    Raises:
-        ValueRangeError: arbitration_id is not a 29-bit value.
-    """
-    can_id = _check("arbitration_id", arbitration_id, range(1 << 29))
-    priority = can_id >> 24
-    source = can_id & 0x7F
-    if can_id & 0x80:
-        return CanId(
-            priority,
-            True,
-            (can_id >> 16) & 0xFF,
-            source,
-            (can_id >> 8) & 0x7F,
-            bool(can_id & 0x8000),
-        )
-    return CanId(priority, False, (can_id >> 8) & 0xFFFF, source, None, None)
-
-
-def tail_byte(transfer_id: int) -> int:
-    """The tail byte of a single-frame transfer: start = end = 1, toggle = 0, the transfer ID.
-
-    Raises:
-        ValueRangeError: transfer_id outside 0..31.
-    """
-    if 0 <= transfer_id <= MAX_TRANSFER_ID:
-        return 0xC0 | transfer_id
-    raise ValueRangeError(f"transfer_id = {transfer_id!r} is not in 0..{MAX_TRANSFER_ID}")
-
-
-class TransferIds:
-    """Transfer ID counters of one sender: each type ID counts 0..31 and wraps on its own.
-
-    Message and service type IDs share the map: CKESC's (20000.. and ..255) never collide.
-    """
-
-    __slots__ = ("_next",)
-
-    def __init__(self) -> None:
-        self._next: dict[int, int] = {}
-
-    def next(self, type_id: int) -> int:
-        """The transfer ID for the next frame of ``type_id`` (0 for its first frame)."""
-        transfer_id = self._next.get(type_id, 0)
-        self._next[type_id] = (transfer_id + 1) & MAX_TRANSFER_ID
-        return transfer_id

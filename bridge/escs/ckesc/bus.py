@@ -8,7 +8,7 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids, fewest_blocks
 
@@ -42,7 +42,7 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
         ValueRangeError: a node ID outside 1..125 (0 is the host).
     """
     ids = frozenset(esc_ids)
-    check_ids(ids, range(1, ckesc.MAX_NODE_ID + 1), "CKESC node")
+    check_ids(ids, range(1, uavcan_v0.MAX_NODE_ID + 1), "CKESC node")
     filters = _filters(TELEMETRY_TYPES, ids)
     if read_back_commands:
         filters += _filters(COMMAND_TYPES, frozenset({ckesc.HOST_NODE_ID}))

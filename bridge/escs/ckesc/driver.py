@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import can
 
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.drivers import unit_fraction
 
 
@@ -25,7 +25,7 @@ class CkescDriver:
         self._full_scale = ckesc.THROTTLE_10B_MAX if command == "10b" else ckesc.THROTTLE_MAX
         self._throttles = [0] * ckesc.MAX_CHANNELS
         self._groups = sorted({index // 4 + 1 for index in self._channel_index})
-        self._transfer_ids = ckesc.TransferIds()
+        self._transfer_ids = uavcan_v0.TransferIds()
         self._zeros = [0.0] * len(self._channel_index)
 
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 import can
 
 from bridge.errors import ConfigError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import bus, telemetry
 from bridge.escs.ckesc.driver import CkescDriver
 from bridge.escs.ckesc.keys import COMMAND_CHANNELS, CkescKeys
@@ -39,7 +39,7 @@ class CkescFamily:
 
     name = NAME
     title = "CKESC"
-    node_ids = range(1, ckesc.MAX_NODE_ID + 1)
+    node_ids = range(1, uavcan_v0.MAX_NODE_ID + 1)
     default_rate_hz = 400
     # CKESC ships at 500 kbit/s (PROTOCOLS.md §1).
     default_bitrate = 500_000

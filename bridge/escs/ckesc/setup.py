@@ -54,7 +54,7 @@ from bridge.errors import (
     SetupError,
     ValueRangeError,
 )
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import (
     CanTestOption,
     CanTestReport,
@@ -161,12 +161,12 @@ class CkescClient(ServiceLink):
     ) -> None:
         if not (0 < timeout_s < math.inf):
             raise ValueError(f"timeout_s={timeout_s!r}: expected a number of seconds > 0")
-        if not (isinstance(host_node, int) and 0 <= host_node <= ckesc.MAX_NODE_ID):
-            raise ValueRangeError(f"host_node = {host_node!r} is not in 0..{ckesc.MAX_NODE_ID}")
+        if not (isinstance(host_node, int) and 0 <= host_node <= uavcan_v0.MAX_NODE_ID):
+            raise ValueRangeError(f"host_node = {host_node!r} is not in 0..{uavcan_v0.MAX_NODE_ID}")
         self.bus = bus
         self.timeout_s = timeout_s
         self.host_node = host_node
-        self._tids = ckesc.TransferIds()
+        self._tids = uavcan_v0.TransferIds()
 
     # -- discovery --------------------------------------------------------------------------
 

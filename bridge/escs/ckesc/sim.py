@@ -114,7 +114,7 @@ from typing import Any
 import can
 
 from bridge.errors import FrameError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import (
     CanTestOption,
     CanTestReport,
@@ -243,8 +243,8 @@ class SimCkesc:
         flash: dict[str, Any] | None = None,
         power_on_s: float = 0.0,
     ) -> None:
-        if not 1 <= node_id <= ckesc.MAX_NODE_ID:
-            raise ValueError(f"node_id={node_id!r} outside 1..{ckesc.MAX_NODE_ID}")
+        if not 1 <= node_id <= uavcan_v0.MAX_NODE_ID:
+            raise ValueError(f"node_id={node_id!r} outside 1..{uavcan_v0.MAX_NODE_ID}")
         if not 1 <= throttle_channel <= ckesc.MAX_CHANNELS:
             raise ValueError(
                 f"throttle_channel={throttle_channel!r} outside 1..{ckesc.MAX_CHANNELS}"
@@ -279,7 +279,7 @@ class SimCkesc:
         self.can_test_mode = False
         self.can_test_count = 0
         """The CANTest counter: the next report's count (u32, wraps)."""
-        self._tids = ckesc.TransferIds()
+        self._tids = uavcan_v0.TransferIds()
         self._due: dict[int, float] = {}
         self._pending: list[tuple[float, can.Message]] = []
         self._others: dict[int, float] = {}
@@ -509,7 +509,7 @@ class SimCkesc:
         reports_on = self.report_mode != ReportMode.PAUSED
         if isinstance(message, SetIdRequest):
             if (
-                1 <= message.node_id <= ckesc.MAX_NODE_ID
+                1 <= message.node_id <= uavcan_v0.MAX_NODE_ID
                 and 1 <= message.throttle_channel <= ckesc.MAX_CHANNELS
                 and self._in_window(now_s)
                 and self._alone(now_s)

@@ -1,6 +1,6 @@
 """What DroneCAN puts on the bus: the kernel filters for its telemetry, and its worst-case load
 (PROTOCOLS.md §3's frame lengths; the transfers' frame counts from
-:mod:`bridge.escs.dronecan.transfer`)."""
+:mod:`bridge.escs.uavcan_v0`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs.dronecan.transfer import frame_sizes
 from bridge.escs.dronecan.wire import (
     NODE_STATUS_BYTES,
     STATUS_BYTES,
@@ -20,6 +19,7 @@ from bridge.escs.dronecan.wire import (
 )
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids
+from bridge.escs.uavcan_v0 import frame_sizes
 
 ESC_NUMBERS: Final = range(1, 21)
 _TYPE_MASK: Final = 0xFFFF << 8 | 0x80  # the message type, and bit 7 clear: a message frame

@@ -3,7 +3,7 @@ or another node's), ``uavcan.equipment.esc.Status`` (an ESC's telemetry) and
 ``uavcan.protocol.NodeStatus`` (any node's health, mode and uptime).
 
 Payloads are (de)serialized by the ``dronecan`` package, the DSDL reference implementation for
-Python; this module adds the transfer layer (:mod:`bridge.escs.dronecan.transfer`) and the
+Python; this module adds the transfer layer (:mod:`bridge.escs.uavcan_v0`) and the
 records. What the output loop sends is encoded by hand in :mod:`bridge.escs.dronecan.wire`
 (why is said there), and the tests check the two against each other.
 
@@ -39,8 +39,6 @@ from dronecan.transport import Transfer as _DcTransfer
 from dronecan.transport import bits_from_bytes
 
 from bridge.errors import DlcError, ValueRangeError
-from bridge.escs.ckesc import TransferIds, message_id, parse_id
-from bridge.escs.dronecan.transfer import Reassembler, Transfer
 from bridge.escs.dronecan.wire import (
     COMMAND_MAX,
     COMMAND_MIN,
@@ -48,14 +46,21 @@ from bridge.escs.dronecan.wire import (
     MAX_COMMANDS,
     NODE_STATUS_BYTES,
     PRIORITY_ESC_COMMAND,
-    PRIORITY_LOWEST,
-    PRIORITY_MEDIUM,
     STATUS_BYTES,
     TYPE_ESC_STATUS,
     TYPE_NODE_STATUS,
     TYPE_RAW_COMMAND,
     owns,
     raw_command_bytes,
+)
+from bridge.escs.uavcan_v0 import (
+    PRIORITY_LOWEST,
+    PRIORITY_MEDIUM,
+    Reassembler,
+    Transfer,
+    TransferIds,
+    message_id,
+    parse_id,
 )
 
 __all__ = [

@@ -16,7 +16,7 @@ stream, each byte filled from its top bit. A field of more than 8 bits is writte
 little-endian bytes, the last one holding only the remaining bits; a field of up to 8 bits is
 written as its bits, top bit first. A RawCommand's ``cmd`` (int14[<=20]) is its last field, so
 its length is not sent (tail array optimization): N commands are ceil(14 N / 8) bytes, one
-frame up to 4 commands, a multi-frame transfer beyond (:mod:`bridge.escs.dronecan.transfer`).
+frame up to 4 commands, a multi-frame transfer beyond (:mod:`bridge.escs.uavcan_v0`).
 
 Constants follow ArduPilot's ``AP_DroneCAN`` where the standard leaves a choice: RawCommand at
 priority 7 (``CANARD_TRANSFER_PRIORITY_HIGH - 1``, "one higher than high priority", above its
@@ -33,8 +33,13 @@ from typing import Final
 import can
 
 from bridge.errors import ValueRangeError
-from bridge.escs.ckesc import message_id
-from bridge.escs.dronecan.transfer import frames_data, signature_crc
+from bridge.escs.uavcan_v0 import (
+    PRIORITY_HIGH,
+    PRIORITY_LOWEST,
+    frames_data,
+    message_id,
+    signature_crc,
+)
 
 # Data type IDs and signatures (DSDL: uavcan/equipment/esc/1030.RawCommand.uavcan, ...).
 TYPE_RAW_COMMAND: Final = 1030
@@ -50,9 +55,6 @@ CRC_START: Final[dict[int, int]] = {
 }
 """The transfer CRC's start per data type ID (its signature's CRC)."""
 
-PRIORITY_HIGH: Final = 8
-PRIORITY_MEDIUM: Final = 16
-PRIORITY_LOWEST: Final = 31
 PRIORITY_ESC_COMMAND: Final = PRIORITY_HIGH - 1
 """ArduPilot's RawCommand priority: one above its actuator commands."""
 
@@ -60,7 +62,8 @@ DEFAULT_NODE_ID: Final = 10
 """The bridge's own node ID unless configured: ArduPilot's default (``CAN_D1_UC_NODE``)."""
 NODE_IDS: Final = range(1, 126)
 """Node IDs the bridge can take: 1..125 (0 is anonymous; 126 and 127 are customarily left to
-maintenance tools, and CKESC reserves them: :func:`bridge.escs.ckesc.message_id` refuses them)."""
+maintenance tools, and CKESC reserves them: :func:`~bridge.escs.uavcan_v0.message_id` refuses
+them)."""
 MAX_COMMANDS: Final = 20
 """RawCommand carries up to 20 commands (``int14[<=20] cmd``): ESC indices 0..19."""
 COMMAND_MAX: Final = 8191

@@ -1,4 +1,5 @@
-"""CKESC codec: PROTOCOLS.md §1.5 vectors, dronecan cross-checks, round trips, malformed frames.
+"""CKESC codec: PROTOCOLS.md §1.5 vectors, dronecan cross-checks, round trips, malformed frames
+(the UAVCAN v0 CAN ID, tail byte and transfer IDs are tested in tests/escs/test_uavcan_v0.py).
 
 The ``SPEC`` table below is written from PROTOCOLS.md §1.3 and the seed, independently of the
 module's own table, so the tests check the module's type IDs, DLCs, priorities, directions and
@@ -30,7 +31,6 @@ from bridge.errors import (
 )
 from bridge.escs import ckesc
 from bridge.escs.ckesc import (
-    CanId,
     CanTestOption,
     CanTestReport,
     CanTestRequest,
@@ -89,18 +89,14 @@ from bridge.escs.ckesc import (
     ThrottleSelectRequest,
     ThrottleSelectResponse,
     ThrottleSource,
-    TransferIds,
     decode,
     encode,
     encode_raw_10b,
     encode_raw_12b,
     encode_raw_14b,
-    message_id,
-    parse_id,
     raw_12b_groups,
-    service_id,
-    tail_byte,
 )
+from bridge.escs.uavcan_v0 import message_id, parse_id, service_id
 
 # --------------------------------------------------------------------------------------------
 # The spec, as test data
@@ -572,7 +568,7 @@ def test_msg1_status_bits_are_the_seeds() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Cross-checks against dronecan's own serializer and transfer framing
+# Cross-checks against dronecan's own serializer (the CAN ID's: tests/escs/test_uavcan_v0.py)
 
 
 @given(st.lists(st.integers(0, 2000), min_size=4, max_size=4), st.integers(0, 31))
@@ -585,59 +581,6 @@ def test_14b_bit_order_matches_dronecan(throttles: list[int], transfer_id: int) 
     assert bytes(ours.data) == bytes(expected.bytes)  # and the tail byte too
     decoded = decode(ours)
     assert decoded is not None and decoded.message == RawCommand14b(tuple(throttles))  # type: ignore[arg-type]
-
-
-@given(
-    st.integers(0, 31), st.integers(1, 0x7D), st.lists(st.integers(0, 2000), min_size=4, max_size=4)
-)
-def test_message_id_layout_matches_dronecan(
-    priority: int, source: int, throttles: list[int]
-) -> None:
-    command = dronecan.uavcan.equipment.esc.RawCommand(cmd=throttles)
-    transfer = Transfer(source_node_id=source, payload=command, transfer_priority=priority)
-    assert transfer.data_type_id == 1030
-    (frame,) = transfer.to_frames()
-    assert frame.message_id == message_id(priority, 1030, source)
-    assert parse_id(frame.message_id) == CanId(priority, False, 1030, source, None, None)
-
-
-@given(st.integers(0, 31), st.integers(0, 0xFFFF), st.integers(1, 0x7D))
-def test_message_id_matches_dronecan_for_any_type(priority: int, type_id: int, source: int) -> None:
-    transfer = Transfer(source_node_id=source, transfer_priority=priority)
-    transfer.data_type_id = type_id
-    assert transfer.message_id == message_id(priority, type_id, source)
-
-
-@given(
-    st.integers(0, 31),
-    st.integers(0, 0xFF),
-    st.booleans(),
-    st.integers(1, 0x7D),
-    st.integers(0, 0x7D),
-)
-def test_service_id_matches_dronecan(
-    priority: int, service_type: int, request: bool, destination: int, source: int
-) -> None:
-    transfer = Transfer(
-        source_node_id=source,
-        dest_node_id=destination,
-        transfer_priority=priority,
-        service_not_message=True,
-        request_not_response=request,
-    )
-    transfer.data_type_id = service_type
-    can_id = service_id(priority, service_type, request, destination, source)
-    assert transfer.message_id == can_id
-    parsed = Transfer()
-    parsed.message_id = can_id
-    assert parse_id(can_id) == CanId(
-        parsed.transfer_priority,
-        True,
-        parsed.data_type_id,
-        parsed.source_node_id,
-        parsed.dest_node_id,
-        parsed.request_not_response,
-    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -909,47 +852,7 @@ def test_raw_12b_groups_for_a_hexacopter() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# ID helpers, tail byte, transfer IDs, node_id
-
-
-@given(st.integers(0, 31), st.integers(0, 0xFFFF), st.integers(0, 0x7D))
-def test_parse_message_id(priority: int, type_id: int, source: int) -> None:
-    assert parse_id(message_id(priority, type_id, source)) == CanId(
-        priority, False, type_id, source, None, None
-    )
-
-
-@pytest.mark.parametrize(
-    ("call", "pattern"),
-    [
-        (lambda: message_id(32, 20050, 1), r"priority = 32 is not in 0\.\.31"),
-        (lambda: message_id(-1, 20050, 1), r"priority = -1 is not in 0\.\.31"),
-        (lambda: message_id(0, 0x10000, 1), r"type_id = 65536 is not in 0\.\.65535"),
-        (lambda: message_id(0, 20050, 0x7E), r"source_node = 126 is not in 0\.\.125"),
-        (lambda: service_id(0, 256, True, 1, 0), r"service_type = 256 is not in 0\.\.255"),
-        (lambda: service_id(0, 212, True, 0x7F, 0), r"destination_node = 127 is not in 0\.\.125"),
-        (lambda: service_id(0, 212, True, 1, 0x7E), r"source_node = 126 is not in 0\.\.125"),
-        (lambda: parse_id(1 << 29), r"arbitration_id = 536870912 is not in 0\.\.536870911"),
-        (lambda: tail_byte(32), r"transfer_id = 32 is not in 0\.\.31"),
-        (lambda: tail_byte(-1), r"transfer_id = -1 is not in 0\.\.31"),
-    ],
-)
-def test_id_helper_ranges(call: Callable[[], object], pattern: str) -> None:
-    with pytest.raises(ValueRangeError, match=pattern):
-        call()
-
-
-def test_tail_byte() -> None:
-    assert [tail_byte(tid) for tid in (0, 1, 31)] == [0xC0, 0xC1, 0xDF]
-
-
-def test_transfer_ids_count_per_type_and_wrap() -> None:
-    ids = TransferIds()
-    assert [ids.next(20101) for _ in range(33)] == [*range(32), 0]
-    assert ids.next(20100) == 0  # another type has its own counter
-    assert ids.next(212) == 0
-    assert ids.next(20101) == 1
-    assert TransferIds().next(20101) == 0  # and another sender too
+# node_id
 
 
 def test_node_id_is_the_escs() -> None:

@@ -12,7 +12,7 @@ import can
 import pytest
 
 from bridge.errors import LinkError, NoAnswerError, RefusedError, SetupError, WrongNodeError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import CkescFrame, Rotation, ThrottleSource
 from bridge.escs.ckesc.setup import CanTestResult, CkescClient, ScannedEsc, scan_warnings
 from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc
@@ -66,7 +66,7 @@ def info_from(node: int) -> Callable[[CkescFrame], can.Message]:
     """An ESC Information response from ``node`` to any request, with its transfer ID."""
 
     def reply(request: CkescFrame) -> can.Message:
-        response = CkescFrame(ckesc.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO)
+        response = CkescFrame(uavcan_v0.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO)
         return ckesc.encode(response)
 
     return reply
@@ -95,7 +95,7 @@ def test_an_answer_with_another_transfer_id_is_not_the_answer(
     def stale(request: CkescFrame) -> can.Message:
         assert request.transfer_id is not None
         earlier = (request.transfer_id - 1) % 32
-        return ckesc.encode(CkescFrame(ckesc.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
+        return ckesc.encode(CkescFrame(uavcan_v0.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
 
     peer = Peer(channel, stale)
     try:
@@ -165,7 +165,7 @@ def test_scan_warns_of_shared_throttle_channels() -> None:
 def spin(channel: str, stop: threading.Event) -> None:
     """Throttle 600 on channel 1 every 20 ms until ``stop``."""
     bus = can.Bus(interface="virtual", channel=channel)
-    tids = ckesc.TransferIds()
+    tids = uavcan_v0.TransferIds()
     while not stop.wait(0.02):
         bus.send(ckesc.encode_raw_12b(1, [600], tids.next(ckesc.TYPE_RAW_COMMAND_12B)))
     bus.shutdown()

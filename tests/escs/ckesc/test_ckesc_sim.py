@@ -17,7 +17,7 @@ import can
 import pytest
 
 from bridge.errors import TailByteError
-from bridge.escs import ckesc
+from bridge.escs import ckesc, uavcan_v0
 from bridge.escs.ckesc import (
     CanTestOption,
     CanTestReport,
@@ -75,7 +75,7 @@ from bridge.escs.ckesc.sim import ESC_INFO, ReportMode, SimCkesc, default_flash
 R = TypeVar("R")
 FULL_V = 16.8  # a full 4S pack
 S = Msg1Status
-MEDIUM, LOW, LOWEST = ckesc.PRIORITY_MEDIUM, ckesc.PRIORITY_LOW, ckesc.PRIORITY_LOWEST
+MEDIUM, LOW, LOWEST = uavcan_v0.PRIORITY_MEDIUM, uavcan_v0.PRIORITY_LOW, uavcan_v0.PRIORITY_LOWEST
 
 
 class Bench:
@@ -150,7 +150,7 @@ def records(out: list[tuple[int, can.Message]], kind: type[R]) -> list[R]:
 
 
 def type_counts(out: list[tuple[int, can.Message]]) -> Counter[int]:
-    return Counter(ckesc.parse_id(msg.arbitration_id).type_id for _, msg in out)
+    return Counter(uavcan_v0.parse_id(msg.arbitration_id).type_id for _, msg in out)
 
 
 def response(record: CkescMessage, node: int, tid: int) -> CkescFrame:
@@ -160,7 +160,7 @@ def response(record: CkescMessage, node: int, tid: int) -> CkescFrame:
 
 def service_raw(service: int, node: int, data: bytes, priority: int = MEDIUM) -> can.Message:
     """A request frame built by hand (for values the encoder rightly refuses)."""
-    can_id = ckesc.service_id(priority, service, True, node, 0)
+    can_id = uavcan_v0.service_id(priority, service, True, node, 0)
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=True)
 
 
@@ -185,7 +185,9 @@ def test_default_rates_transfer_ids_and_ids() -> None:
         assert {(f.priority, f.source_node, f.destination_node) for f in mine} == {
             (LOWEST, 3, None)
         }
-    msg1_ms = [ms for ms, m in out if ckesc.parse_id(m.arbitration_id).type_id == ckesc.TYPE_MSG1]
+    msg1_ms = [
+        ms for ms, m in out if uavcan_v0.parse_id(m.arbitration_id).type_id == ckesc.TYPE_MSG1
+    ]
     assert msg1_ms == list(range(0, 1000, 20))
 
 
@@ -194,7 +196,9 @@ def test_a_poll_gap_skips_ahead_instead_of_bursting() -> None:
     bench.run(1)
     bench.ms = 1000  # a 1 s stall of the caller
     out = bench.run(100)
-    msg1_ms = [ms for ms, m in out if ckesc.parse_id(m.arbitration_id).type_id == ckesc.TYPE_MSG1]
+    msg1_ms = [
+        ms for ms, m in out if uavcan_v0.parse_id(m.arbitration_id).type_id == ckesc.TYPE_MSG1
+    ]
     assert msg1_ms == [1000, 1020, 1040, 1060, 1080]
 
 
@@ -547,7 +551,7 @@ def test_set_id_alone_within_120_s_survives_a_power_cycle() -> None:
     assert (sim.node_id, sim.throttle_channel) == (9, 3)
     assert (flash["node_id"], flash["throttle_channel"]) == (9, 3)
     out = bench.run(100, throttle=900)
-    assert {ckesc.parse_id(m.arbitration_id).source_node for _, m in out} == {9}
+    assert {uavcan_v0.parse_id(m.arbitration_id).source_node for _, m in out} == {9}
     assert records(out, Msg1)[-1].throttle == 900  # follows channel 3
 
     # Power cycle: the same flash, whatever the constructor says.

@@ -12,9 +12,9 @@ import pytest
 from bridge.can_io import open_bus
 from bridge.config import CanConfig
 from bridge.errors import ValueRangeError
-from bridge.escs.ckesc import message_id, service_id
 from bridge.escs.dronecan import bus, wire
 from bridge.escs.family import frame_bits
+from bridge.escs.uavcan_v0 import message_id, service_id
 
 _channels = itertools.count()
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from bridge.errors import CrcError, DlcError, FrameError, ValueRangeError
 from bridge.escs.dronecan import codec, wire
 from bridge.escs.dronecan.codec import Decoder, EscStatus, NodeStatus, RawCommand, TransferPart
-from bridge.escs.dronecan.transfer import frames_data
+from bridge.escs.uavcan_v0 import frames_data
 
 # Values a float16 holds exactly, and NaN (not measured).
 HALF = st.one_of(

@@ -1,9 +1,10 @@
-"""The UAVCAN v0 transfer layer (bridge/escs/dronecan/transfer.py) against the ``dronecan``
-package's own: the CRC, the signature's CRC start, the split into frames, and the reassembly
-state machine's round trips and refusals."""
+"""The UAVCAN v0 framing (bridge/escs/uavcan_v0.py) against the ``dronecan`` package's own: the
+CAN ID helpers, tail byte and transfer IDs; the CRC, the signature's CRC start, the split into
+frames, and the reassembly state machine's round trips and refusals."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import dronecan
@@ -14,8 +15,19 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.errors import CrcError, DlcError, TailByteError, ValueRangeError
-from bridge.escs.dronecan.transfer import Reassembler, crc16, frame_sizes, frames_data
 from bridge.escs.dronecan.wire import CRC_START, SIGNATURE_RAW_COMMAND, TYPE_RAW_COMMAND
+from bridge.escs.uavcan_v0 import (
+    CanId,
+    Reassembler,
+    TransferIds,
+    crc16,
+    frame_sizes,
+    frames_data,
+    message_id,
+    parse_id,
+    service_id,
+    tail_byte,
+)
 
 DC: Any = dronecan
 RAW_ID = 0x0704060A  # RawCommand, priority 7, node 10
@@ -153,3 +165,100 @@ def test_reset_forgets_transfers_in_progress() -> None:
 def test_transfer_id_range() -> None:
     with pytest.raises(ValueRangeError):
         frames_data(b"\x00", 32, 0xFFFF)
+
+
+# --------------------------------------------------------------------------------------------
+# CAN ID, tail byte, transfer IDs
+
+
+@given(st.integers(0, 31), st.integers(0, 0xFFFF), st.integers(0, 0x7D))
+def test_parse_message_id(priority: int, type_id: int, source: int) -> None:
+    assert parse_id(message_id(priority, type_id, source)) == CanId(
+        priority, False, type_id, source, None, None
+    )
+
+
+@pytest.mark.parametrize(
+    ("call", "pattern"),
+    [
+        (lambda: message_id(32, 20050, 1), r"priority = 32 is not in 0\.\.31"),
+        (lambda: message_id(-1, 20050, 1), r"priority = -1 is not in 0\.\.31"),
+        (lambda: message_id(0, 0x10000, 1), r"type_id = 65536 is not in 0\.\.65535"),
+        (lambda: message_id(0, 20050, 0x7E), r"source_node = 126 is not in 0\.\.125"),
+        (lambda: service_id(0, 256, True, 1, 0), r"service_type = 256 is not in 0\.\.255"),
+        (lambda: service_id(0, 212, True, 0x7F, 0), r"destination_node = 127 is not in 0\.\.125"),
+        (lambda: service_id(0, 212, True, 1, 0x7E), r"source_node = 126 is not in 0\.\.125"),
+        (lambda: parse_id(1 << 29), r"arbitration_id = 536870912 is not in 0\.\.536870911"),
+        (lambda: tail_byte(32), r"transfer_id = 32 is not in 0\.\.31"),
+        (lambda: tail_byte(-1), r"transfer_id = -1 is not in 0\.\.31"),
+    ],
+)
+def test_id_helper_ranges(call: Callable[[], object], pattern: str) -> None:
+    with pytest.raises(ValueRangeError, match=pattern):
+        call()
+
+
+def test_tail_byte() -> None:
+    assert [tail_byte(tid) for tid in (0, 1, 31)] == [0xC0, 0xC1, 0xDF]
+
+
+def test_transfer_ids_count_per_type_and_wrap() -> None:
+    ids = TransferIds()
+    assert [ids.next(20101) for _ in range(33)] == [*range(32), 0]
+    assert ids.next(20100) == 0  # another type has its own counter
+    assert ids.next(212) == 0
+    assert ids.next(20101) == 1
+    assert TransferIds().next(20101) == 0  # and another sender too
+
+
+@given(
+    st.integers(0, 31), st.integers(1, 0x7D), st.lists(st.integers(0, 2000), min_size=4, max_size=4)
+)
+def test_message_id_layout_matches_dronecan(
+    priority: int, source: int, throttles: list[int]
+) -> None:
+    command = DC.uavcan.equipment.esc.RawCommand(cmd=throttles)
+    transfer = DcTransfer(source_node_id=source, payload=command, transfer_priority=priority)
+    assert transfer.data_type_id == 1030
+    (frame,) = transfer.to_frames()
+    assert frame.message_id == message_id(priority, 1030, source)
+    assert parse_id(frame.message_id) == CanId(priority, False, 1030, source, None, None)
+
+
+@given(st.integers(0, 31), st.integers(0, 0xFFFF), st.integers(1, 0x7D))
+def test_message_id_matches_dronecan_for_any_type(priority: int, type_id: int, source: int) -> None:
+    transfer = DcTransfer(source_node_id=source, transfer_priority=priority)
+    transfer.data_type_id = type_id
+    assert transfer.message_id == message_id(priority, type_id, source)
+
+
+@given(
+    st.integers(0, 31),
+    st.integers(0, 0xFF),
+    st.booleans(),
+    st.integers(1, 0x7D),
+    st.integers(0, 0x7D),
+)
+def test_service_id_matches_dronecan(
+    priority: int, service_type: int, request: bool, destination: int, source: int
+) -> None:
+    transfer = DcTransfer(
+        source_node_id=source,
+        dest_node_id=destination,
+        transfer_priority=priority,
+        service_not_message=True,
+        request_not_response=request,
+    )
+    transfer.data_type_id = service_type
+    can_id = service_id(priority, service_type, request, destination, source)
+    assert transfer.message_id == can_id
+    parsed = DcTransfer()
+    parsed.message_id = can_id
+    assert parse_id(can_id) == CanId(
+        parsed.transfer_priority,
+        True,
+        parsed.data_type_id,
+        parsed.source_node_id,
+        parsed.dest_node_id,
+        parsed.request_not_response,
+    )

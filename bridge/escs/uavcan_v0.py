@@ -1,5 +1,13 @@
-"""UAVCAN v0 (DroneCAN) transfers on classic CAN: tail bytes, the transfer CRC, splitting a
-payload into frames and putting frames back together. Pure: no I/O, clock or logging.
+"""UAVCAN v0 framing on classic CAN, shared by the two families that use it: CKESC (vendor
+types) and standard DroneCAN. The CAN ID's fields, transfer ID counters, tail bytes, the
+transfer CRC, splitting a payload into frames and putting frames back together. Pure: no I/O,
+clock or logging; no family is imported here (PROTOCOLS.md §1.1, §1.3; the DSDL's
+``uavcan.protocol`` and libcanard for the multi-frame rules).
+
+The CAN ID (29 bits). A message (broadcast) frame's is priority (5 bits) · type ID (16) · 0 ·
+source node (7); a service frame's is priority · service type (8) · request flag · destination
+node (7) · 1 · source node. Node IDs 126 and 127 are reserved (CKESC's document; DroneCAN
+leaves them to maintenance tools), so the ID builders take 0..0x7D.
 
 A transfer is one serialized message. Each of its frames ends in a tail byte: start of
 transfer (bit 7), end of transfer (bit 6), toggle (bit 5: 0 in the first frame, then
@@ -7,7 +15,8 @@ alternating), transfer ID (bits 4..0, the same in every frame). A payload of up 
 frame (start = end = 1). A longer one is preceded by the transfer CRC, two bytes little-endian,
 and cut into 7-byte pieces. The CRC is CRC-16/CCITT-FALSE (polynomial 0x1021, initial 0xFFFF)
 over the data type signature (8 bytes, little-endian) and then the payload, so a transfer of one
-type never passes for another.
+type never passes for another. (CKESC's types are all single-frame: it uses the ID helpers and
+:func:`tail_byte` only; the multi-frame part serves DroneCAN, whose name its errors carry.)
 
 Decisions (libcanard's, which ArduPilot and most DroneCAN ESCs run):
 
@@ -17,10 +26,6 @@ Decisions (libcanard's, which ArduPilot and most DroneCAN ESCs run):
   ID, toggle, or no start) ends it as an error, and is dropped. No clock: a transfer cut off
   midway is forgotten when the same sender's next transfer starts.
 - A completed multi-frame transfer whose CRC does not match is an error; its payload is lost.
-
-The CAN ID layout and per-type transfer ID counters are CKESC's too (CKESC is UAVCAN v0 framing
-with vendor types): :func:`bridge.escs.ckesc.message_id`, :func:`~bridge.escs.ckesc.parse_id`
-and :class:`~bridge.escs.ckesc.TransferIds` serve both families rather than being repeated here.
 """
 
 from __future__ import annotations
@@ -31,6 +36,15 @@ from typing import Final
 
 from bridge.errors import CrcError, DlcError, FrameError, TailByteError, ValueRangeError
 
+PRIORITY_HIGHEST: Final = 0
+PRIORITY_HIGH: Final = 8
+PRIORITY_MEDIUM: Final = 16
+PRIORITY_LOW: Final = 24
+PRIORITY_LOWEST: Final = 31
+"""The five named priority levels (libcanard's ``CANARD_TRANSFER_PRIORITY_*``; CKESC's
+document uses the same); any of 0..31 is valid, lower wins arbitration."""
+MAX_NODE_ID: Final = 0x7D
+"""Highest usable node ID (0x7E and 0x7F are reserved)."""
 START_OF_TRANSFER: Final = 0x80
 END_OF_TRANSFER: Final = 0x40
 TOGGLE: Final = 0x20
@@ -40,6 +54,126 @@ FRAME_PAYLOAD: Final = 7
 """Payload bytes per classic CAN frame (the eighth is the tail byte)."""
 SESSION_MASK: Final = (1 << 24) - 1
 """The CAN ID bits that name a transfer's session: all but the 5 priority bits."""
+
+
+_PRIORITY: Final = range(PRIORITY_LOWEST + 1)
+_TYPE_ID: Final = range(0x1_0000)
+_SERVICE_TYPE: Final = range(0x100)
+_NODE: Final = range(MAX_NODE_ID + 1)
+
+# --------------------------------------------------------------------------------------------
+# CAN ID, tail byte, transfer IDs
+
+
+def _check(what: str, value: object, allowed: range) -> int:
+    """``value`` as an int if it is in ``allowed``; else ValueRangeError naming it all."""
+    if isinstance(value, int) and value in allowed:
+        return int(value)
+    raise ValueRangeError(f"{what} = {value!r} is not in {allowed.start}..{allowed.stop - 1}")
+
+
+@dataclass(frozen=True, slots=True)
+class CanId:
+    """The fields of a UAVCAN v0 CAN ID (PROTOCOLS.md §1.1).
+
+    ``type_id`` is the message type ID (16 bits) or the service type ID (8 bits);
+    ``destination_node`` and ``is_request`` are ``None`` for message frames.
+    """
+
+    priority: int
+    is_service: bool
+    type_id: int
+    source_node: int
+    destination_node: int | None
+    is_request: bool | None
+
+
+def message_id(priority: int, type_id: int, source_node: int) -> int:
+    """The 29-bit CAN ID of a message (broadcast) frame.
+
+    Raises:
+        ValueRangeError: priority outside 0..31, type_id outside 0..65535, or source_node
+            outside 0..0x7D.
+    """
+    return (
+        _check("priority", priority, _PRIORITY) << 24
+        | _check("type_id", type_id, _TYPE_ID) << 8
+        | _check("source_node", source_node, _NODE)
+    )
+
+
+def service_id(
+    priority: int, service_type: int, is_request: bool, destination_node: int, source_node: int
+) -> int:
+    """The 29-bit CAN ID of a service request or response frame.
+
+    Raises:
+        ValueRangeError: priority outside 0..31, service_type outside 0..255, or a node ID
+            outside 0..0x7D.
+    """
+    return (
+        _check("priority", priority, _PRIORITY) << 24
+        | _check("service_type", service_type, _SERVICE_TYPE) << 16
+        | (0x8000 if is_request else 0)
+        | _check("destination_node", destination_node, _NODE) << 8
+        | 0x80
+        | _check("source_node", source_node, _NODE)
+    )
+
+
+def parse_id(arbitration_id: int) -> CanId:
+    """Split a 29-bit CAN ID into its UAVCAN v0 fields.
+
+    Raises:
+        ValueRangeError: arbitration_id is not a 29-bit value.
+    """
+    can_id = _check("arbitration_id", arbitration_id, range(1 << 29))
+    priority = can_id >> 24
+    source = can_id & 0x7F
+    if can_id & 0x80:
+        return CanId(
+            priority,
+            True,
+            (can_id >> 16) & 0xFF,
+            source,
+            (can_id >> 8) & 0x7F,
+            bool(can_id & 0x8000),
+        )
+    return CanId(priority, False, (can_id >> 8) & 0xFFFF, source, None, None)
+
+
+def tail_byte(transfer_id: int) -> int:
+    """The tail byte of a single-frame transfer: start = end = 1, toggle = 0, the transfer ID.
+
+    Raises:
+        ValueRangeError: transfer_id outside 0..31.
+    """
+    if 0 <= transfer_id <= MAX_TRANSFER_ID:
+        return 0xC0 | transfer_id
+    raise ValueRangeError(f"transfer_id = {transfer_id!r} is not in 0..{MAX_TRANSFER_ID}")
+
+
+class TransferIds:
+    """Transfer ID counters of one sender: each type ID counts 0..31 and wraps on its own.
+
+    Message and service type IDs share the map: CKESC's (20000.. and ..255) never collide, nor
+    do the DroneCAN message types the bridge sends.
+    """
+
+    __slots__ = ("_next",)
+
+    def __init__(self) -> None:
+        self._next: dict[int, int] = {}
+
+    def next(self, type_id: int) -> int:
+        """The transfer ID for the next frame of ``type_id`` (0 for its first frame)."""
+        transfer_id = self._next.get(type_id, 0)
+        self._next[type_id] = (transfer_id + 1) & MAX_TRANSFER_ID
+        return transfer_id
+
+
+# --------------------------------------------------------------------------------------------
+# Transfers: the CRC, split, reassembly
 
 
 def _crc_table() -> tuple[int, ...]:
