@@ -19,10 +19,13 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from bridge.errors import ConfigError
 from bridge.escs import registry
+
+if TYPE_CHECKING:
+    from bridge.mixing.definition import MixerDefinition
 
 MavlinkSource = Literal[
     "servo_output_raw", "actuator_output_status", "hil_actuator_controls", "actuator_control_target"
@@ -706,6 +709,22 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
         )
     return replace(config, escs=replace(config.escs, families=families))
+
+
+def with_mixer_esc_count(
+    config: BridgeConfig, mixer: MixerDefinition | None = None
+) -> BridgeConfig:
+    """:func:`with_esc_count` for the configuration's mixer: ``mixer`` when the caller has it
+    already, else the one ``[mixer] name`` names.
+
+    Raises:
+        ConfigError: the mixer cannot be loaded, or the ESC lists do not fit it.
+    """
+    if mixer is None:
+        from bridge.mixing.loader import load_mixer
+
+        mixer = load_mixer(config.mixer.name)
+    return with_esc_count(config, len(mixer.outputs))
 
 
 def documented_keys() -> list[tuple[str, str, Any, str]]:
