@@ -7,7 +7,8 @@ import argparse
 from collections.abc import Mapping
 from typing import Any, Final
 
-from bridge.config import BridgeConfig, build_config, merge, read_config_file
+from bridge.config import BridgeConfig, build_config
+from bridge.config_file import merge, read_config_file
 from bridge.errors import ConfigError
 
 EXIT_OK: Final = 0
