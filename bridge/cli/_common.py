@@ -22,6 +22,12 @@ CAN_FLAGS: Final[dict[str, tuple[str, str]]] = {
     "--can-channel": ("can", "channel"),
     "--bitrate": ("can", "bitrate"),
 }
+# The ESC flags of the commands that read ESCs themselves (sim, monitor): the family and the IDs.
+# Their --escs N (no key of its own) sets IDs 1..N when --ids is not given.
+ESC_FLAGS: Final[dict[str, tuple[str, str]]] = {
+    "--protocol": ("output", "protocol"),
+    "--ids": ("escs", "ids"),
+}
 
 
 def add_can_flags(
@@ -115,12 +121,15 @@ def flag_overrides(
 ) -> dict[str, dict[str, Any]]:
     """The configuration keys the given flags set: ``flags`` maps each flag to its (section,
     key), its value read from the ``args`` attribute of the flag's name (None when not given);
-    then ``--can-option``'s, as [can] options."""
+    then ``--can-option``'s, as [can] options, and ``--escs N``'s, as [escs] ids 1..N."""
     overrides: dict[str, dict[str, Any]] = {}
     for flag, (section, key) in flags.items():
         value = getattr(args, flag.lstrip("-").replace("-", "_"))
         if value is not None:
             overrides.setdefault(section, {})[key] = value
+    escs = getattr(args, "escs", None)
+    if escs is not None and "ids" not in overrides.get("escs", {}):
+        overrides.setdefault("escs", {})["ids"] = list(range(1, escs + 1))
     if args.can_option:
         overrides.setdefault("can", {})["options"] = dict(args.can_option)
     return overrides

@@ -10,6 +10,7 @@ from typing import Any
 
 from bridge.cli._common import (
     CAN_FLAGS,
+    ESC_FLAGS,
     EXIT_OK,
     EXIT_USAGE,
     add_can_flags,
@@ -28,8 +29,7 @@ from bridge.escs import registry
 # Flags of the CAN source -> (section, key) of the configuration they override.
 MONITOR_CAN_FLAGS: dict[str, tuple[str, str]] = {
     **CAN_FLAGS,
-    "--protocol": ("output", "protocol"),
-    "--ids": ("escs", "ids"),
+    **ESC_FLAGS,
     "--pole-pairs": ("telemetry", "pole_pairs"),
     "--telemetry-timeout-ms": ("telemetry", "timeout_ms"),
 }
@@ -182,8 +182,6 @@ def monitor_config(args: argparse.Namespace) -> tuple[str, BridgeConfig, str]:
         parser.error("the CAN source needs the ESCs: --escs N or --ids ID,ID,... (or --config)")
 
     overrides = flag_overrides(args, MONITOR_CAN_FLAGS)
-    if args.escs is not None:
-        overrides.setdefault("escs", {})["ids"] = list(range(1, args.escs + 1))
     flags = dict(MONITOR_CAN_FLAGS)
     zenoh = {"mode": args.mode, "connect": args.connect, "listen": args.listen}
     if args.no_multicast_scouting:

@@ -8,6 +8,7 @@ import sys
 
 from bridge.cli._common import (
     CAN_FLAGS,
+    ESC_FLAGS,
     EXIT_OK,
     EXIT_USAGE,
     add_can_flags,
@@ -23,8 +24,7 @@ from bridge.escs import registry
 # Flags of `sim` -> (section, key) of the configuration they override.
 SIM_FLAGS: dict[str, tuple[str, str]] = {
     **CAN_FLAGS,
-    "--protocol": ("output", "protocol"),
-    "--ids": ("escs", "ids"),
+    **ESC_FLAGS,
 }
 
 
@@ -141,10 +141,7 @@ def sim_config(args: argparse.Namespace) -> BridgeConfig:
         parser.error(f"--ids: {len(args.ids)} IDs, but --escs {args.escs}; expected one per ESC")
     if args.config is None and args.escs is None and args.ids is None:
         parser.error("the ESCs are needed: --escs N or --ids ID,ID,... (or --config)")
-    overrides = flag_overrides(args, SIM_FLAGS)
-    if args.escs is not None and args.ids is None:
-        overrides.setdefault("escs", {})["ids"] = list(range(1, args.escs + 1))
-    config, _ = merged_config(args, overrides, SIM_FLAGS)
+    config, _ = merged_config(args, flag_overrides(args, SIM_FLAGS), SIM_FLAGS)
     if config.escs.ids:
         return with_esc_count(config, len(config.escs.ids))
     return with_mixer_esc_count(config)
