@@ -6,23 +6,39 @@ so a mistake is reported the same way wherever it came from: the file (or "comma
 because a misspelt safety setting that is silently ignored is worse than a refused start.
 
 Every key is documented in ``config/README.md``; a test keeps that page and this module in step.
+The keys' validators are in :mod:`bridge.config_checks`, reading a file and laying the command
+line over it in :mod:`bridge.config_file` (the subcommands' one merge: ``bridge.cli._common``).
 """
 
 from __future__ import annotations
 
-import codecs
-import math
-import reprlib
 import socket
-import stat
-import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
-from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
+from bridge.config_checks import (
+    boolean,
+    check,
+    choice,
+    choice_int,
+    float_range,
+    int_list,
+    int_range,
+    is_number,
+    key,
+    optional,
+    ordered_pair,
+    range_pair,
+    shown,
+    string,
+    string_list,
+)
 from bridge.errors import ConfigError
 from bridge.escs import registry
+
+if TYPE_CHECKING:
+    from bridge.mixing.definition import MixerDefinition
 
 MavlinkSource = Literal[
     "servo_output_raw", "actuator_output_status", "hil_actuator_controls", "actuator_control_target"
@@ -30,94 +46,8 @@ MavlinkSource = Literal[
 Latency = Literal["fixed", "immediate"]
 LoopMode = Literal["auto", "process", "thread"]
 
-# A config file is a few kB; anything much bigger is the wrong file (or /dev/zero), and is
-# refused before it is read into memory.
-MAX_CONFIG_BYTES = 1 << 20
-# Values quoted in messages are shortened: a 4000-digit number or a 10 000-entry list must not
-# bury what was wrong.
-_SHOWN = reprlib.Repr()
-_SHOWN.maxstring = _SHOWN.maxother = 60
-_SHOWN.maxlong = 40
-
 # The system ID ground stations use unless told otherwise (QGroundControl, Mission Planner).
 GCS_SYSTEM_ID = 255
-
-
-def _shown(value: Any) -> str:
-    """``repr(value)``, shortened for a message."""
-    return _SHOWN.repr(value)
-
-
-def _is_number(v: Any) -> bool:
-    """A finite int or float (not a bool) that a float can hold: TOML integers have no bound,
-    and ``float(10**400)`` raises."""
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        return False
-    try:
-        return math.isfinite(v)
-    except OverflowError:  # an int beyond the float range
-        return False
-
-
-def _check(predicate: Callable[[Any], bool], expected: str) -> Callable[[Any], str | None]:
-    def check(value: Any) -> str | None:
-        return None if predicate(value) else expected
-
-    return check
-
-
-def _int_range(lo: int, hi: int) -> Callable[[Any], str | None]:
-    return _check(
-        lambda v: isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi,
-        f"an integer {lo}..{hi}",
-    )
-
-
-def _float_range(lo: float, hi: float) -> Callable[[Any], str | None]:
-    return _check(lambda v: _is_number(v) and lo <= v <= hi, f"a number {lo:g}..{hi:g}")
-
-
-def _choice(*choices: str) -> Callable[[Any], str | None]:
-    return _check(lambda v: v in choices, "one of " + ", ".join(repr(c) for c in choices))
-
-
-def _string(v: Any) -> str | None:
-    return None if isinstance(v, str) and v else "a non-empty string"
-
-
-def _bool(v: Any) -> str | None:
-    return None if isinstance(v, bool) else "true or false"
-
-
-def _int_list(lo: int, hi: int, *, non_empty: bool = False) -> Callable[[Any], str | None]:
-    what = "a non-empty list" if non_empty else "a list"
-
-    def check(v: Any) -> str | None:
-        ok = isinstance(v, list) and all(
-            isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in v
-        )
-        if not ok or (non_empty and not v):
-            return f"{what} of integers {lo}..{hi}"
-        return None if len(set(v)) == len(v) else f"{what} of distinct integers {lo}..{hi}"
-
-    return check
-
-
-def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
-    def optional(v: Any) -> str | None:
-        return None if v is None else check(v)
-
-    return optional
-
-
-def _range_pair(v: Any) -> str | None:
-    ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] != v[1]
-    return None if ok else "two different numbers [low, high]"
-
-
-def _ordered_pair(v: Any) -> str | None:
-    ok = isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]
-    return None if ok else "two numbers [low, high] with low < high"
 
 
 def _options(v: Any) -> str | None:
@@ -143,11 +73,6 @@ def _is_axis_map(v: Any) -> bool:
         and 1 <= c <= 32
         for k, c in v.items()
     )
-
-
-def _string_list(v: Any) -> str | None:
-    ok = isinstance(v, list) and all(isinstance(x, str) and x for x in v)
-    return None if ok else "a list of non-empty strings"
 
 
 def _pole_pairs(v: Any) -> str | None:
@@ -177,13 +102,6 @@ def _key_prefix(v: Any) -> str | None:
     return None if ok else "a Zenoh key expression without wildcards or leading/trailing '/'"
 
 
-def _choice_int(*choices: int) -> Callable[[Any], str | None]:
-    return _check(
-        lambda v: isinstance(v, int) and v in choices,
-        "one of " + ", ".join(str(c) for c in choices),
-    )
-
-
 MESSAGE_FAMILIES = ("esc_status", "esc_info", "esc_telemetry")
 """The ESC telemetry families a MAVLink connection can carry (``bridge.mavlink.esc_messages``)."""
 MAX_MESSAGE_HZ = 100.0
@@ -197,8 +115,8 @@ def _message_set(v: Any) -> str | None:
     for family, rate in v.items():
         if family not in MESSAGE_FAMILIES:
             return f"{_MESSAGE_SET}; {family!r} is no message family"
-        if not (_is_number(rate) and 0 <= rate <= MAX_MESSAGE_HZ):
-            return f"{_MESSAGE_SET}; {family} = {_shown(rate)} is no rate 0..100"
+        if not (is_number(rate) and 0 <= rate <= MAX_MESSAGE_HZ):
+            return f"{_MESSAGE_SET}; {family} = {shown(rate)} is no rate 0..100"
     return None
 
 
@@ -213,17 +131,12 @@ def _output_message_sets(v: Any) -> str | None:
     return None
 
 
-def key(default: Any, check: Callable[[Any], str | None], doc: str) -> Any:
-    """A config key: its default, its validator (returns what was expected, or None) and doc."""
-    return field(default=default, metadata={"check": check, "doc": doc})
-
-
 @dataclass(frozen=True)
 class MavlinkConfig:
-    url: str = key("udpin:0.0.0.0:14550", _string, "pymavlink connection string of the autopilot")
+    url: str = key("udpin:0.0.0.0:14550", string, "pymavlink connection string of the autopilot")
     source: MavlinkSource = key(
         "servo_output_raw",
-        _choice(
+        choice(
             "servo_output_raw",
             "actuator_output_status",
             "hil_actuator_controls",
@@ -231,54 +144,58 @@ class MavlinkConfig:
         ),
         "which message carries the motor outputs",
     )
-    autopilot_system_id: int = key(1, _int_range(1, 255), "system ID whose outputs are obeyed")
+    autopilot_system_id: int = key(1, int_range(1, 255), "system ID whose outputs are obeyed")
     autopilot_component_id: int = key(
-        1, _int_range(1, 255), "component ID whose outputs are obeyed (1 = MAV_COMP_ID_AUTOPILOT1)"
+        1,
+        int_range(1, 255),
+        "component ID whose outputs are obeyed (1 = MAV_COMP_ID_AUTOPILOT1)",
     )
     component_id: int = key(
-        191, _int_range(1, 255), "the bridge's own component ID (191 = ONBOARD_COMPUTER)"
+        191, int_range(1, 255), "the bridge's own component ID (191 = ONBOARD_COMPUTER)"
     )
     command_senders: tuple[int, ...] | None = key(
         None,
-        _optional(_int_list(1, 255, non_empty=True)),
+        optional(int_list(1, 255, non_empty=True)),
         "system IDs whose commands that move motors (MAV_CMD_DO_MOTOR_TEST) are obeyed "
         "(default: 255, a ground station, and the autopilot's system ID)",
     )
     stream_rate_hz: float = key(
-        200.0, _float_range(0, 1000), "output stream rate asked of the autopilot; 0 = do not ask"
+        200.0,
+        float_range(0, 1000),
+        "output stream rate asked of the autopilot; 0 = do not ask",
     )
     autopilot_heartbeat_hz: float = key(
         20.0,
-        _float_range(0, 100),
+        float_range(0, 100),
         "HEARTBEAT rate asked of the autopilot, so an arming change is heard within 1/rate "
         "instead of up to a second; 0 = do not ask",
     )
     signing_key: str | None = key(
         None,
-        _optional(_check(_is_hex32, "64 hex digits (a 32-byte key)")),
+        optional(check(_is_hex32, "64 hex digits (a 32-byte key)")),
         "MAVLink 2 signing key; when set, unsigned or badly signed messages are rejected",
     )
-    heartbeat_hz: float = key(1.0, _float_range(0.1, 10), "rate of the bridge's own HEARTBEAT")
+    heartbeat_hz: float = key(1.0, float_range(0.1, 10), "rate of the bridge's own HEARTBEAT")
     outputs: tuple[str, ...] = key(
         (),
-        _string_list,
+        string_list,
         "extra MAVLink connections (e.g. udpout:192.168.1.10:14550 to a GCS) that get the "
         "bridge's HEARTBEAT, STATUSTEXT and ESC telemetry",
     )
     esc_status_hz: float = key(
-        10.0, _float_range(0, 100), "ESC_STATUS rate on each output (ground station); 0 = off"
+        10.0, float_range(0, 100), "ESC_STATUS rate on each output (ground station); 0 = off"
     )
     esc_info_hz: float = key(
-        1.0, _float_range(0, 100), "ESC_INFO rate on each output (ground station); 0 = off"
+        1.0, float_range(0, 100), "ESC_INFO rate on each output (ground station); 0 = off"
     )
     esc_telemetry_hz: float = key(
         10.0,
-        _float_range(0, 100),
+        float_range(0, 100),
         "ArduPilot ESC_TELEMETRY_x_TO_y rate on each output (ground station); 0 = off",
     )
     autopilot_messages: Mapping[str, float] | None = key(
         None,
-        _optional(_message_set),
+        optional(_message_set),
         "ESC telemetry on the autopilot's link, e.g. { esc_telemetry = 2 } (Hz; a family not "
         "listed is off); default: chosen from the autopilot's HEARTBEAT (ArduPilot "
         "ESC_TELEMETRY_x_TO_y 2 Hz, PX4 ESC_STATUS 2 Hz and ESC_INFO 1 Hz, another stack all "
@@ -286,7 +203,7 @@ class MavlinkConfig:
     )
     output_messages: Mapping[str, Mapping[str, float]] | None = key(
         None,
-        _optional(_output_message_sets),
+        optional(_output_message_sets),
         "ESC telemetry on particular outputs, by URL as in outputs, e.g. "
         '{ "udpout:10.0.0.2:14550" = { esc_status = 5 } } (Hz; a family not listed is off); '
         "outputs not named get esc_status_hz, esc_info_hz and esc_telemetry_hz",
@@ -307,17 +224,17 @@ class MavlinkConfig:
 @dataclass(frozen=True)
 class MixerConfig:
     name: str = key(
-        "passthrough-4", _string, "bundled mixer name (see mixers/) or path to a mixer .toml"
+        "passthrough-4", string, "bundled mixer name (see mixers/) or path to a mixer .toml"
     )
     input_range: tuple[float, float] | None = key(
         None,
-        _optional(_range_pair),
+        optional(range_pair),
         "input range of every channel source, overriding the mixer's (default: the mixer's, "
         "PWM [1000, 2000] µs; [0, 1] for hil_actuator_controls)",
     )
     valid_range: tuple[float, float] | None = key(
         None,
-        _optional(_ordered_pair),
+        optional(ordered_pair),
         "channel inputs outside this are invalid: safe values, FAILSAFE invalid input (default "
         "[800, 2200] µs for the PWM sources servo_output_raw and actuator_output_status; "
         "[-1.5, 1.5] for the normalized sources hil_actuator_controls and "
@@ -325,7 +242,7 @@ class MixerConfig:
     )
     axis_channels: Mapping[str, int] | None = key(
         None,
-        _optional(_check(_is_axis_map, "a table of roll, pitch, yaw, thrust = channel 1..32")),
+        optional(check(_is_axis_map, "a table of roll, pitch, yaw, thrust = channel 1..32")),
         "geometry mixers: take roll, pitch, yaw and thrust from these channels, scaled from "
         "the channel input range",
     )
@@ -333,71 +250,75 @@ class MixerConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
-    protocol: str = key(registry.DEFAULT, _choice(*registry.names()), "ESC protocol on the bus")
+    protocol: str = key(registry.DEFAULT, choice(*registry.names()), "ESC protocol on the bus")
     rate_hz: int | None = key(
         None,
-        _optional(_int_range(1, 1000)),
+        optional(int_range(1, 1000)),
         "command rate per ESC (default: the ESC protocol's own, see config/README.md)",
     )
     latency: Latency = key(
         "fixed",
-        _choice("fixed", "immediate"),
+        choice("fixed", "immediate"),
         "fixed: send at the rate; immediate: send a fresh input at once and re-phase the tick",
     )
-    require_armed: bool = key(True, _bool, "send safe values while disarmed (false: bench use)")
+    require_armed: bool = key(True, boolean, "send safe values while disarmed (false: bench use)")
     input_timeout_ms: int = key(
         100,
-        _int_range(20, 1000),
+        int_range(20, 1000),
         "an input produced (by the autopilot's clock) longer ago than this is stale: safe values",
     )
     arming_timeout_ms: int = key(
         3000,
-        _int_range(500, 60_000),
+        int_range(500, 60_000),
         "the autopilot's arming state (its HEARTBEAT) older than this counts as disarmed: "
         "safe values",
     )
     shutdown_flush_ms: int = key(
-        200, _int_range(0, 5000), "safe values sent this long on a stop signal or a death"
+        200, int_range(0, 5000), "safe values sent this long on a stop signal or a death"
     )
     motor_test: bool = key(
         False,
-        _bool,
+        boolean,
         "obey MAV_CMD_DO_MOTOR_TEST from the allowed senders while disarmed; off: refused",
     )
     motor_test_max_s: float = key(
         10.0,
-        _float_range(0.1, 600),
+        float_range(0.1, 600),
         "longest motor test per motor (MAV_CMD_DO_MOTOR_TEST timeout), s; longer ones are cut",
     )
     loop: LoopMode = key(
         "auto",
-        _choice("auto", "process", "thread"),
+        choice("auto", "process", "thread"),
         "where the control loop (autopilot link, mixer, CAN transmit) runs: its own process (free "
         "of the GIL), a thread, or auto "
         "(process for interfaces several processes can open: socketcan, udp_multicast)",
     )
     realtime_priority: int = key(
-        50, _int_range(0, 99), "SCHED_FIFO priority of the output loop when permitted; 0 = off"
+        50,
+        int_range(0, 99),
+        "SCHED_FIFO priority of the output loop when permitted; 0 = off",
     )
     bus_load_ceiling: float = key(
-        0.70, _float_range(0.05, 1.0), "refuse a config whose worst-case bus load exceeds this"
+        0.70,
+        float_range(0.05, 1.0),
+        "refuse a config whose worst-case bus load exceeds this",
     )
 
 
 @dataclass(frozen=True)
 class CanConfig:
-    interface: str = key("socketcan", _string, "python-can interface name")
-    channel: str = key("can0", _string, "python-can channel (socketcan: the netdev, e.g. can0)")
+    interface: str = key("socketcan", string, "python-can interface name")
+    channel: str = key("can0", string, "python-can channel (socketcan: the netdev, e.g. can0)")
     bitrate: int | None = key(
         None,
-        _optional(
-            _choice_int(1_000_000, 750_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
+        optional(
+            choice_int(1_000_000, 750_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
         ),
         "bus bit rate in bit/s (default 500000), for the bus-load check and interfaces that set it",
     )
     options: Mapping[str, Any] | None = key(
         None,
-        _optional(_options),
+        optional(_options),
         "extra python-can arguments for the interface (e.g. port = 43113)",
     )
 
@@ -406,7 +327,7 @@ class CanConfig:
 class EscsConfig:
     ids: tuple[int, ...] = key(
         (),
-        _int_list(1, 125),
+        int_list(1, 125),
         "ID of the ESC on each mixer output, in output order (its family's node or ESC ID); "
         "default 1..N",
     )
@@ -437,28 +358,30 @@ def _escs_fields() -> list[Any]:
 @dataclass(frozen=True)
 class TelemetryConfig:
     timeout_ms: int = key(
-        500, _int_range(20, 10_000), "an ESC is offline when no frame came for this long"
+        500, int_range(20, 10_000), "an ESC is offline when no frame came for this long"
     )
     pole_pairs: int | tuple[int, ...] = key(
         7, _pole_pairs, "motor pole pairs (erpm / pole pairs = rpm): one, or one per motor"
     )
     max_temp_c: float | None = key(
         100.0,
-        _optional(_float_range(0, 250)),
+        optional(float_range(0, 250)),
         "any reported temperature above this raises OVER_TEMPERATURE",
     )
     max_current_a: float | None = key(
-        None, _optional(_float_range(0, 1000)), "|current| above this raises OVER_CURRENT"
+        None,
+        optional(float_range(0, 1000)),
+        "|current| above this raises OVER_CURRENT",
     )
     max_rpm: int | None = key(
-        None, _optional(_int_range(1, 1_000_000)), "|rpm| above this raises OVER_RPM"
+        None, optional(int_range(1, 1_000_000)), "|rpm| above this raises OVER_RPM"
     )
     error_burst: int = key(
-        5, _int_range(1, 10_000), "this many CRC/format errors within 1 s raise GENERIC"
+        5, int_range(1, 10_000), "this many CRC/format errors within 1 s raise GENERIC"
     )
     learn_ids: bool = key(
         False,
-        _bool,
+        boolean,
         "ask the ESCs for their node IDs at start (for ESC families that can ask) and map them "
         "to motors by throttle channel, instead of trusting [escs] ids",
     )
@@ -466,29 +389,33 @@ class TelemetryConfig:
 
 @dataclass(frozen=True)
 class ZenohConfig:
-    enabled: bool = key(True, _bool, "publish telemetry over Zenoh")
+    enabled: bool = key(True, boolean, "publish telemetry over Zenoh")
     mode: Literal["peer", "client", "router"] = key(
-        "peer", _choice("peer", "client", "router"), "Zenoh session mode"
+        "peer", choice("peer", "client", "router"), "Zenoh session mode"
     )
     connect: tuple[str, ...] = key(
-        (), _string_list, "endpoints to connect to, e.g. tcp/192.168.1.2:7447 (a zenohd router)"
+        (),
+        string_list,
+        "endpoints to connect to, e.g. tcp/192.168.1.2:7447 (a zenohd router)",
     )
-    listen: tuple[str, ...] = key((), _string_list, "endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    listen: tuple[str, ...] = key((), string_list, "endpoints to listen on, e.g. tcp/0.0.0.0:7447")
     multicast_scouting: bool = key(
-        True, _bool, "find peers and routers on the LAN by multicast (Zenoh's default)"
+        True, boolean, "find peers and routers on the LAN by multicast (Zenoh's default)"
     )
     vehicle: str | None = key(
-        None, _optional(_key_segment), "the vehicle's name in the keys (default: the host name)"
+        None,
+        optional(_key_segment),
+        "the vehicle's name in the keys (default: the host name)",
     )
     prefix: str | None = key(
-        None, _optional(_key_prefix), "key prefix (default esc-bridge/<vehicle>)"
+        None, optional(_key_prefix), "key prefix (default esc-bridge/<vehicle>)"
     )
-    telemetry_hz: float = key(10.0, _float_range(0.1, 200), "cap on each esc/<n>/telemetry")
-    status_hz: float = key(10.0, _float_range(0.1, 200), "cap on esc/status")
-    info_hz: float = key(1.0, _float_range(0.1, 200), "cap on each esc/<n>/info")
-    health_hz: float = key(2.0, _float_range(0.1, 200), "cap on bridge/health")
+    telemetry_hz: float = key(10.0, float_range(0.1, 200), "cap on each esc/<n>/telemetry")
+    status_hz: float = key(10.0, float_range(0.1, 200), "cap on esc/status")
+    info_hz: float = key(1.0, float_range(0.1, 200), "cap on each esc/<n>/info")
+    health_hz: float = key(2.0, float_range(0.1, 200), "cap on bridge/health")
     actuators_hz: float = key(
-        10.0, _float_range(0.1, 200), "cap on actuators/input and actuators/output"
+        10.0, float_range(0.1, 200), "cap on actuators/input and actuators/output"
     )
 
     def key_prefix(self) -> str:
@@ -545,85 +472,6 @@ SECTIONS: dict[str, type[Any]] = {
 }
 
 
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file into raw tables (validated later by :func:`build_config`).
-
-    The file must be UTF-8 text (a leading byte-order mark is allowed, as Windows editors write
-    one) of at most :data:`MAX_CONFIG_BYTES`; an empty file is valid and means the defaults.
-
-    Raises:
-        ConfigError: the file is missing, a directory or a device, unreadable, too big, binary
-            or not UTF-8 (naming the byte offset), or not valid TOML.
-    """
-    path = Path(path)
-    try:
-        # Not even opened: a serial port would wait for its carrier forever, /dev/zero never ends.
-        if stat.S_ISCHR(path.stat().st_mode) or stat.S_ISBLK(path.stat().st_mode):
-            raise ConfigError(f"{path}: a device, not a file; expected a TOML config file")
-        with path.open("rb") as file:
-            data = file.read(MAX_CONFIG_BYTES + 1)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory; expected a TOML config file") from None
-    except OSError as exc:
-        raise ConfigError(
-            f"{path}: cannot read: {exc.strerror or exc}; expected a readable TOML config file"
-        ) from exc
-    if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError(
-            f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; expected a TOML config file"
-        )
-    text = _decode_text(data, path)
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    except RecursionError:
-        raise ConfigError(
-            f"{path}: not valid TOML: arrays or inline tables nested too deeply"
-        ) from None
-    except ValueError as exc:
-        # tomllib lets int()'s limit of 4300 digits through as a plain ValueError.
-        reason = str(exc).split(";")[0]  # not its advice to change the interpreter's limit
-        raise ConfigError(f"{path}: not valid TOML: {reason}; expected a 64-bit integer") from exc
-
-
-def _decode_text(data: bytes, path: Path) -> str:
-    """``data`` as text, or ConfigError naming the offset of the first byte that is not."""
-    nul = data.find(b"\0")
-    start = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
-    try:
-        text = data[start:].decode("utf-8")
-    except UnicodeDecodeError as exc:
-        offset = start + exc.start
-        if 0 <= nul < offset:
-            raise ConfigError(
-                f"{path}: a binary file (NUL byte at offset {nul}); expected a TOML text file"
-            ) from None
-        raise ConfigError(
-            f"{path}: not UTF-8 text: byte 0x{data[offset]:02X} at offset {offset} "
-            f"({exc.reason}); expected a UTF-8 TOML file"
-        ) from None
-    if nul >= 0:
-        raise ConfigError(
-            f"{path}: a binary file (NUL byte at offset {nul}); expected a TOML text file"
-        )
-    return text
-
-
-def merge(base: dict[str, Any], override: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-    """Overlay ``override``'s keys on ``base``'s, section by section (override wins)."""
-    merged = {
-        name: dict(table) if isinstance(table, dict) else table for name, table in base.items()
-    }
-    for name, table in override.items():
-        section = merged.setdefault(name, {})
-        if isinstance(section, dict):
-            section.update(table)
-    return merged
-
-
 def build_config(raw: Mapping[str, Any], source: str) -> BridgeConfig:
     """Validate raw tables into a :class:`BridgeConfig`.
 
@@ -638,7 +486,7 @@ def build_config(raw: Mapping[str, Any], source: str) -> BridgeConfig:
                 + ", ".join(f"[{s}]" for s in SECTIONS)
             )
         if not isinstance(table, dict):
-            raise ConfigError(f"{source}: [{name}] must be a table, got {_shown(table)}")
+            raise ConfigError(f"{source}: [{name}] must be a table, got {shown(table)}")
         sections[name] = _build_section(SECTIONS[name], name, table, source)
     config = BridgeConfig(source=source, **sections)
     _check_cross_section(config)
@@ -659,7 +507,7 @@ def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: 
             )
         problem = known[k].metadata["check"](value)
         if problem is not None:
-            raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {_shown(value)}")
+            raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {shown(value)}")
         if isinstance(value, list):
             value = tuple(value)
         values[k] = value
@@ -706,6 +554,22 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
         )
     return replace(config, escs=replace(config.escs, families=families))
+
+
+def with_mixer_esc_count(
+    config: BridgeConfig, mixer: MixerDefinition | None = None
+) -> BridgeConfig:
+    """:func:`with_esc_count` for the configuration's mixer: ``mixer`` when the caller has it
+    already, else the one ``[mixer] name`` names.
+
+    Raises:
+        ConfigError: the mixer cannot be loaded, or the ESC lists do not fit it.
+    """
+    if mixer is None:
+        from bridge.mixing.loader import load_mixer
+
+        mixer = load_mixer(config.mixer.name)
+    return with_esc_count(config, len(mixer.outputs))
 
 
 def documented_keys() -> list[tuple[str, str, Any, str]]:

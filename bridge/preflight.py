@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Final
 
 from bridge.can_io import check_interface
-from bridge.config import BridgeConfig, with_esc_count
+from bridge.config import BridgeConfig, with_mixer_esc_count
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV, DialectError, load_dialect
 from bridge.mavlink.endpoints import Endpoint, check_endpoints
@@ -127,7 +127,7 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
     if input_range is not None:
         with _located(source, "[mixer] input_range: "):
             definition = definition.with_input_range(*input_range)
-    config = with_esc_count(config, len(definition.outputs))
+    config = with_mixer_esc_count(config, definition)
     if config.zenoh.enabled:
         with _located(source):
             session_config(config.zenoh)  # a malformed endpoint is a config error, found now

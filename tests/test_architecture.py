@@ -115,7 +115,7 @@ PURE = re.compile(
     r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
 )
 """The pure layers: no I/O of their own, so they run (and are tested) anywhere."""
-IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|output_loop|daemon|cli(\..*)?|config)$")
+IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|output_loop|daemon|cli(\..*)?|config|config_file)$")
 
 
 @pytest.mark.parametrize("module", sorted(m for m in MODULES if PURE.match(m)))

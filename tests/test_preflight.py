@@ -22,7 +22,8 @@ from conftest import ESC_BRIDGE, ROOT, Daemon, Observer, can_args
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bridge.config import SECTIONS, BridgeConfig, build_config, read_config_file
+from bridge.config import SECTIONS, BridgeConfig, build_config
+from bridge.config_file import read_config_file
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV
 from bridge.mavlink.endpoints import Endpoint, check_endpoints

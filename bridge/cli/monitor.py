@@ -9,26 +9,27 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from bridge.cli._common import (
+    CAN_FLAGS,
+    ESC_FLAGS,
     EXIT_OK,
     EXIT_USAGE,
     add_can_flags,
     esc_count,
+    flag_overrides,
     id_list,
     int_list,
+    merged_config,
     positive_seconds,
     with_flag_names,
 )
-from bridge.config import BridgeConfig, build_config, merge, read_config_file
+from bridge.config import BridgeConfig, build_config
 from bridge.errors import ConfigError
 from bridge.escs import registry
 
 # Flags of the CAN source -> (section, key) of the configuration they override.
 MONITOR_CAN_FLAGS: dict[str, tuple[str, str]] = {
-    "--can-interface": ("can", "interface"),
-    "--can-channel": ("can", "channel"),
-    "--bitrate": ("can", "bitrate"),
-    "--protocol": ("output", "protocol"),
-    "--ids": ("escs", "ids"),
+    **CAN_FLAGS,
+    **ESC_FLAGS,
     "--pole-pairs": ("telemetry", "pole_pairs"),
     "--telemetry-timeout-ms": ("telemetry", "timeout_ms"),
 }
@@ -166,7 +167,7 @@ def monitor_config(args: argparse.Namespace) -> tuple[str, BridgeConfig, str]:
         SystemExit: flags of both sources are mixed, or the CAN source has no ESC list.
     """
     from bridge import monitor
-    from bridge.config import with_esc_count
+    from bridge.config import with_mixer_esc_count
 
     parser: argparse.ArgumentParser = args.monitor_parser
     can_flags = _given(args, [*MONITOR_CAN_FLAGS, "--escs", "--can-option"])
@@ -180,16 +181,8 @@ def monitor_config(args: argparse.Namespace) -> tuple[str, BridgeConfig, str]:
     if source == "can" and args.config is None and args.escs is None and args.ids is None:
         parser.error("the CAN source needs the ESCs: --escs N or --ids ID,ID,... (or --config)")
 
-    overrides: dict[str, dict[str, Any]] = {}
+    overrides = flag_overrides(args, MONITOR_CAN_FLAGS)
     flags = dict(MONITOR_CAN_FLAGS)
-    for flag, (section, key) in MONITOR_CAN_FLAGS.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.escs is not None:
-        overrides.setdefault("escs", {})["ids"] = list(range(1, args.escs + 1))
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
     zenoh = {"mode": args.mode, "connect": args.connect, "listen": args.listen}
     if args.no_multicast_scouting:
         zenoh["multicast_scouting"] = False
@@ -197,27 +190,16 @@ def monitor_config(args: argparse.Namespace) -> tuple[str, BridgeConfig, str]:
     if zenoh:
         overrides["zenoh"] = zenoh
         flags |= {f"--{key}": ("zenoh", key) for key in ("mode", "connect", "listen")}
-    try:
-        config = build_config(overrides, "command line")  # the flags alone name themselves
-    except ConfigError as exc:
-        raise with_flag_names(exc, flags) from None
+    config, raw = merged_config(args, overrides, flags)
     prefix = args.prefix or monitor.DEFAULT_PREFIX
-    if args.config is not None:
-        raw = read_config_file(args.config)
-        if "options" in overrides.get("can", {}):
-            file_options = raw.get("can", {}).get("options", {})
-            if isinstance(file_options, dict):
-                overrides["can"]["options"] = file_options | overrides["can"]["options"]
-        config = build_config(merge(raw, overrides), args.config)
+    if raw is not None:
         from_file = build_config(raw, args.config).zenoh
         zconfig = monitor.monitor_zenoh_config(from_file)
         zconfig = dataclasses.replace(zconfig, **{k: getattr(config.zenoh, k) for k in zenoh})
         config = dataclasses.replace(config, zenoh=zconfig)
         prefix = args.prefix or monitor.prefix_of(from_file)
     if source == "can" and not config.escs.ids:
-        from bridge.mixing.loader import load_mixer
-
-        config = with_esc_count(config, len(load_mixer(config.mixer.name).outputs))
+        config = with_mixer_esc_count(config)
     pairs, ids = config.telemetry.pole_pairs, config.escs.ids
     if source == "can" and isinstance(pairs, tuple) and len(pairs) != len(ids):
         where = "--pole-pairs" if args.pole_pairs else f"{config.source}: [telemetry] pole_pairs"

@@ -8,8 +8,8 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-from bridge.cli._common import EXIT_OK, can_option, with_flag_names
-from bridge.config import SECTIONS, BridgeConfig, build_config, merge, read_config_file
+from bridge.cli._common import EXIT_OK, add_can_option, flag_overrides, merged_config
+from bridge.config import SECTIONS, BridgeConfig
 from bridge.errors import ConfigError
 from bridge.escs import registry
 
@@ -94,14 +94,7 @@ def _add_run_overrides(parser: argparse.ArgumentParser) -> None:
             metavar=RUN_METAVARS.get(flag, "VALUE"),
             help=f"{text} ([{section}] {key})",
         )
-    parser.add_argument(
-        "--can-option",
-        action="append",
-        default=[],
-        type=can_option,
-        metavar="KEY=VALUE",
-        help="extra python-can interface argument, repeatable (e.g. port=43113)",
-    )
+    add_can_option(parser)
     parser.add_argument(
         "--zenoh-connect",
         action="append",
@@ -137,13 +130,8 @@ def run_config(args: argparse.Namespace) -> BridgeConfig:
     Raises:
         ConfigError: a flag or the file is invalid.
     """
-    overrides: dict[str, dict[str, Any]] = {}
-    for flag, (section, key, _, _) in RUN_OVERRIDES.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
+    flags = {flag: (section, key) for flag, (section, key, _, _) in RUN_OVERRIDES.items()}
+    overrides = flag_overrides(args, flags)
     zenoh_flags = {
         "connect": args.zenoh_connect,
         "listen": args.zenoh_listen,
@@ -153,22 +141,8 @@ def run_config(args: argparse.Namespace) -> BridgeConfig:
     for key, value in zenoh_flags.items():
         if value is not None:
             overrides.setdefault("zenoh", {})[key] = value
-    # The flags alone first, so that a bad flag is reported as the flag it is.
-    try:
-        build_config(overrides, "command line")
-    except ConfigError as exc:
-        flags = {flag: (section, key) for flag, (section, key, _, _) in RUN_OVERRIDES.items()}
-        flags |= {"--zenoh-connect": ("zenoh", "connect"), "--zenoh-listen": ("zenoh", "listen")}
-        raise with_flag_names(exc, flags) from None
-    if args.config is None:
-        return build_config(overrides, "command line")
-    raw = read_config_file(args.config)
-    if "options" in overrides.get("can", {}):
-        file_can = raw.get("can")
-        file_options = file_can.get("options", {}) if isinstance(file_can, dict) else None
-        if isinstance(file_options, dict):
-            overrides["can"]["options"] = file_options | overrides["can"]["options"]
-    return build_config(merge(raw, overrides), args.config)
+    flags |= {"--zenoh-connect": ("zenoh", "connect"), "--zenoh-listen": ("zenoh", "listen")}
+    return merged_config(args, overrides, flags)[0]
 
 
 def given_flags(args: argparse.Namespace) -> dict[str, tuple[str, str]]:

@@ -5,28 +5,26 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Any
 
 from bridge.cli._common import (
+    CAN_FLAGS,
+    ESC_FLAGS,
     EXIT_OK,
     EXIT_USAGE,
     add_can_flags,
     esc_count,
+    flag_overrides,
     id_list,
+    merged_config,
     positive_seconds,
-    with_flag_names,
 )
-from bridge.config import BridgeConfig, build_config, merge, read_config_file
-from bridge.errors import ConfigError
+from bridge.config import BridgeConfig
 from bridge.escs import registry
 
 # Flags of `sim` -> (section, key) of the configuration they override.
 SIM_FLAGS: dict[str, tuple[str, str]] = {
-    "--can-interface": ("can", "interface"),
-    "--can-channel": ("can", "channel"),
-    "--bitrate": ("can", "bitrate"),
-    "--protocol": ("output", "protocol"),
-    "--ids": ("escs", "ids"),
+    **CAN_FLAGS,
+    **ESC_FLAGS,
 }
 
 
@@ -136,39 +134,17 @@ def sim_config(args: argparse.Namespace) -> BridgeConfig:
         ConfigError: a flag or the file is invalid.
         SystemExit: no ESC list, or --escs and --ids disagree.
     """
-    from bridge.config import with_esc_count
+    from bridge.config import with_esc_count, with_mixer_esc_count
 
     parser: argparse.ArgumentParser = args.sim_parser
     if args.escs is not None and args.ids is not None and len(args.ids) != args.escs:
         parser.error(f"--ids: {len(args.ids)} IDs, but --escs {args.escs}; expected one per ESC")
     if args.config is None and args.escs is None and args.ids is None:
         parser.error("the ESCs are needed: --escs N or --ids ID,ID,... (or --config)")
-    overrides: dict[str, dict[str, Any]] = {}
-    for flag, (section, key) in SIM_FLAGS.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.escs is not None and args.ids is None:
-        overrides.setdefault("escs", {})["ids"] = list(range(1, args.escs + 1))
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
-    try:
-        config = build_config(overrides, "command line")  # the flags alone name themselves
-    except ConfigError as exc:
-        raise with_flag_names(exc, SIM_FLAGS) from None
-    if args.config is not None:
-        raw = read_config_file(args.config)
-        if "options" in overrides.get("can", {}):
-            file_options = raw.get("can", {}).get("options", {})
-            if isinstance(file_options, dict):
-                overrides["can"]["options"] = file_options | overrides["can"]["options"]
-        config = build_config(merge(raw, overrides), args.config)
-    count = len(config.escs.ids)
-    if not count:
-        from bridge.mixing.loader import load_mixer
-
-        count = len(load_mixer(config.mixer.name).outputs)
-    return with_esc_count(config, count)
+    config, _ = merged_config(args, flag_overrides(args, SIM_FLAGS), SIM_FLAGS)
+    if config.escs.ids:
+        return with_esc_count(config, len(config.escs.ids))
+    return with_mixer_esc_count(config)
 
 
 def _sim(args: argparse.Namespace) -> int:

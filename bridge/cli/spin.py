@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
 
-from bridge.cli._common import EXIT_INTERRUPTED, EXIT_OK, add_can_flags, with_flag_names
-from bridge.config import BridgeConfig, build_config, merge, read_config_file
-from bridge.errors import ConfigError
+from bridge.cli._common import (
+    CAN_FLAGS,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    add_can_flags,
+    flag_overrides,
+    merged_config,
+)
+from bridge.config import BridgeConfig
 from bridge.escs import registry
 
 # Flags of `esc spin` -> (section, key) of the configuration they override, as for `run`.
 SPIN_FLAGS: dict[str, tuple[str, str]] = {
-    "--can-interface": ("can", "interface"),
-    "--can-channel": ("can", "channel"),
-    "--bitrate": ("can", "bitrate"),
+    **CAN_FLAGS,
     "--protocol": ("output", "protocol"),
     "--mixer": ("mixer", "name"),
 }
@@ -121,25 +124,7 @@ def spin_config(args: argparse.Namespace) -> BridgeConfig:
     Raises:
         ConfigError: a flag or the file is invalid.
     """
-    overrides: dict[str, dict[str, Any]] = {}
-    for flag, (section, key) in SPIN_FLAGS.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
-    try:
-        config = build_config(overrides, "command line")  # the flags alone name themselves
-    except ConfigError as exc:
-        raise with_flag_names(exc, SPIN_FLAGS) from None
-    if args.config is None:
-        return config
-    raw = read_config_file(args.config)
-    if "options" in overrides.get("can", {}):
-        file_options = raw.get("can", {}).get("options", {})
-        if isinstance(file_options, dict):
-            overrides["can"]["options"] = file_options | overrides["can"]["options"]
-    return build_config(merge(raw, overrides), args.config)
+    return merged_config(args, flag_overrides(args, SPIN_FLAGS), SPIN_FLAGS)[0]
 
 
 def _esc_spin(args: argparse.Namespace) -> int:

@@ -21,7 +21,7 @@ from typing import Final, Literal
 import can
 
 from bridge.can_io import check_interface, is_transient, open_bus
-from bridge.config import BridgeConfig, with_esc_count
+from bridge.config import BridgeConfig, with_mixer_esc_count
 from bridge.errors import ConfigError, LinkError
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.mixing.definition import MixerDefinition
@@ -85,7 +85,7 @@ def plan_spin(config: BridgeConfig, request: SpinRequest) -> SpinPlan:
             f"--motor {request.motor}: mixer {mixer.name!r} has motors 1..{n_motors}; "
             "expected one of those"
         )
-    config = with_esc_count(config, n_motors)
+    config = with_mixer_esc_count(config, mixer)
     check_bus_load(config)
     output = mixer.outputs[request.motor - 1]
     fraction = min(request.throttle_pct / 100.0, output.maximum)

@@ -14,12 +14,14 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Final, TypeVar
 
 from bridge.cli._common import (
+    CAN_FLAGS,
     EXIT_INTERRUPTED,
     add_can_flags,
+    flag_overrides,
+    merged_config,
     positive_seconds,
-    with_flag_names,
 )
-from bridge.config import CanConfig, build_config, merge, read_config_file
+from bridge.config import CanConfig
 from bridge.errors import ConfigError, NoAnswerError, ValueRangeError, WrongNodeError
 from bridge.escs.ckesc import (
     BAUD_RATES_BPS,
@@ -35,12 +37,6 @@ if TYPE_CHECKING:
 
 _T = TypeVar("_T")
 
-# Flags of the bus -> (section, key) of the configuration they override.
-BUS_FLAGS: Final[dict[str, tuple[str, str]]] = {
-    "--can-interface": ("can", "interface"),
-    "--can-channel": ("can", "channel"),
-    "--bitrate": ("can", "bitrate"),
-}
 
 COLORS: Final[dict[str, LedColor]] = {
     "off": LedColor(0),
@@ -191,29 +187,12 @@ def bus_config(args: argparse.Namespace) -> tuple[CanConfig, int]:
     Raises:
         ConfigError: a flag or the file is invalid, or the file is for FT ESCs.
     """
-    overrides: dict[str, dict[str, Any]] = {}
-    for flag, (section, key) in BUS_FLAGS.items():
-        value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value is not None:
-            overrides.setdefault(section, {})[key] = value
-    if args.can_option:
-        overrides.setdefault("can", {})["options"] = dict(args.can_option)
-    try:
-        config = build_config(overrides, "command line")  # the flags alone name themselves
-    except ConfigError as exc:
-        raise with_flag_names(exc, BUS_FLAGS) from None
-    if args.config is not None:
-        raw = read_config_file(args.config)
-        if "options" in overrides.get("can", {}):
-            file_options = raw.get("can", {}).get("options", {})
-            if isinstance(file_options, dict):
-                overrides["can"]["options"] = file_options | overrides["can"]["options"]
-        config = build_config(merge(raw, overrides), args.config)
-        if config.output.protocol != "ckesc":
-            raise ConfigError(
-                f"{args.config}: [output] protocol is {config.output.protocol!r}; "
-                "`esc-bridge esc` sets up CKESC ESCs only"
-            )
+    config, _ = merged_config(args, flag_overrides(args, CAN_FLAGS), CAN_FLAGS)
+    if args.config is not None and config.output.protocol != "ckesc":
+        raise ConfigError(
+            f"{args.config}: [output] protocol is {config.output.protocol!r}; "
+            "`esc-bridge esc` sets up CKESC ESCs only"
+        )
     return config.can, config.bitrate
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bridge.config import _float_range, _int_list, _int_range, key
+from bridge.config_checks import float_range, int_list, int_range, key
 from bridge.escs.dronecan.wire import DEFAULT_NODE_ID
 
 
@@ -12,18 +12,18 @@ from bridge.escs.dronecan.wire import DEFAULT_NODE_ID
 class DronecanKeys:
     dronecan_node_id: int = key(
         DEFAULT_NODE_ID,
-        _int_range(1, 125),
+        int_range(1, 125),
         "the bridge's own DroneCAN node ID, the source of its RawCommand and NodeStatus "
         "(default 10, as ArduPilot's CAN_D1_UC_NODE)",
     )
     dronecan_reversible: tuple[int, ...] = key(
         (),
-        _int_list(1, 20),
+        int_list(1, 20),
         "DroneCAN ESCs (by ESC number in ids) that run both ways: -1..1 becomes -8191..8191 "
         "(as ArduPilot's CAN_D1_UC_ESC_RV); the others get 0..8191",
     )
     dronecan_status_hz: float = key(
         50.0,
-        _float_range(0, 1000),
+        float_range(0, 1000),
         "esc.Status transfers each DroneCAN ESC sends per second (for the bus-load check)",
     )
