@@ -39,7 +39,6 @@ from bridge.config import BridgeConfig
 from bridge.errors import BridgeError, LinkError
 from bridge.escs import registry
 from bridge.escs.drivers import flush_safe_values, make_driver
-from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.definition import INPUT_NAMES
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
@@ -55,10 +54,11 @@ from bridge.output.motor_test import (
 from bridge.output.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
 from bridge.output.safety import SENDING_COMMANDS, LoopState
 from bridge.preflight import Plan
-from bridge.record import Recording
 from bridge.relay import MainConnection, relay_pair
 from bridge.stopping import StopSignals
+from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.recorder import Recording
 
 log = logging.getLogger(__name__)
 

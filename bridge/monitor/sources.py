@@ -4,7 +4,8 @@ Both sources give the same thing, :meth:`vehicles`: the latest ESC telemetry dic
 (:class:`~bridge.monitor.view.VehicleState`), taken whenever the screen is redrawn. Neither
 ever sends anything to the ESCs: the CAN source opens the bus and only reads it.
 
-Only :class:`ZenohSource` imports zenoh (through :mod:`bridge.zenoh_out`), and only when opened.
+Only :class:`ZenohSource` imports zenoh (through :mod:`bridge.telemetry.zenoh_out`), and only
+when opened.
 """
 
 from __future__ import annotations
@@ -18,13 +19,13 @@ from dataclasses import dataclass, field, replace
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol, Self
 
-from bridge.can_in import CanReader
 from bridge.can_io import check_interface, open_bus
 from bridge.config import BridgeConfig, ZenohConfig
 from bridge.errors import ConfigError, LinkError
 from bridge.escs import registry
 from bridge.monitor.view import VehicleState
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.reader import CanReader
 
 if TYPE_CHECKING:
     import can
@@ -173,7 +174,7 @@ class ZenohSource:
             raise ConfigError(f"prefix {prefix!r}: expected {problem}")
         import zenoh  # only the Zenoh source needs it
 
-        from bridge.zenoh_out import session_config
+        from bridge.telemetry.zenoh_out import session_config
 
         source = cls(prefix)
         settings = session_config(config)

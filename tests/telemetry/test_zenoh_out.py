@@ -28,7 +28,7 @@ from bridge.config import ZenohConfig
 from bridge.errors import ConfigError
 from bridge.escs import ckesc, ft, registry
 from bridge.telemetry.state import EscTable
-from bridge.zenoh_out import TelemetrySources, ZenohOut, session_config
+from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut, session_config
 
 TIMEOUT_S = 5.0
 JSON = "application/json"
@@ -449,7 +449,7 @@ def test_a_subscriber_in_another_process_gets_the_json(
 def test_unreachable_zenoh_never_holds_up_the_bridge(
     table: EscTable, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.DEBUG, logger="bridge.zenoh_out")
+    caplog.set_level(logging.DEBUG, logger="bridge.telemetry.zenoh_out")
     closed_port = free_port(socket.SOCK_STREAM)  # nothing listens there
     config = ZenohConfig(
         mode="client",
@@ -515,7 +515,7 @@ def test_close_is_prompt_when_zenoh_hangs(
 def test_comes_up_when_the_router_appears_and_counts_reconnects(
     table: EscTable, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="bridge.zenoh_out")
+    caplog.set_level(logging.INFO, logger="bridge.telemetry.zenoh_out")
     port = free_port(socket.SOCK_STREAM)
     endpoint = f"tcp/127.0.0.1:{port}"
     config = ZenohConfig(

@@ -15,15 +15,15 @@ from typing import Any
 import can
 from can.typechecking import CanFilter
 
-from bridge.can_in import CanReader, Recorder, reader_filters
 from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
 from bridge.escs import registry
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
+from bridge.telemetry.reader import CanReader, Recorder, reader_filters
 from bridge.telemetry.state import EscTable
-from bridge.zenoh_out import TelemetrySources, ZenohOut
+from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +52,11 @@ class Fanout:
     ) -> None:
         """``shared_bus``: read the output loop's handle instead of opening one of our own.
 
-        Our own handle receives only our ESCs' telemetry (:func:`~bridge.can_in.reader_filters`),
-        unless ``recorder`` is given (the recording wants every frame); with
-        ``read_back_commands`` (the default) it receives the bridge's own commands too, which the
-        ESC state reads back for the actuators/output key. A shared handle belongs to the
-        output loop and is read as it was opened.
+        Our own handle receives only our ESCs' telemetry
+        (:func:`~bridge.telemetry.reader.reader_filters`), unless ``recorder`` is given (the
+        recording wants every frame); with ``read_back_commands`` (the default) it receives the
+        bridge's own commands too, which the ESC state reads back for the actuators/output key. A
+        shared handle belongs to the output loop and is read as it was opened.
         """
         self._config = config
         self._family = registry.family(config.output.protocol)

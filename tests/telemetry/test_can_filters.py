@@ -1,4 +1,5 @@
-"""What the bridge's CAN handles receive (bridge/can_io.py, bridge/can_in.py, bridge/fanout.py).
+"""What the bridge's CAN handles receive (bridge/can_io.py, bridge/telemetry/reader.py,
+bridge/telemetry/fanout.py).
 
 The filters are checked against the protocols' ID layouts (PROTOCOLS.md §1.1, §2.1) written out
 again here, through python-can's own matching on a ``virtual`` and a ``udp_multicast`` bus and
@@ -32,7 +33,6 @@ from conftest import MULTICAST_GROUP, free_port
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.can_in import CanReader, reader_filters
 from bridge.can_io import (
     apply_filters,
     enlarge_receive_buffer,
@@ -44,10 +44,11 @@ from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
 from bridge.escs import ckesc, ft, registry
 from bridge.escs.ft.sim import SimFt
-from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
 from bridge.sim.runner import Simulator, make_escs
+from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.reader import CanReader, reader_filters
 from bridge.telemetry.state import EscTable
 
 MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's IPv6 default
