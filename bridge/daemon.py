@@ -58,6 +58,16 @@ from bridge.relay import MainConnection, relay_pair
 from bridge.stopping import StopSignals
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.payload import (
+    ActuatorsInputPayload,
+    ActuatorsOutputPayload,
+    CommandOut,
+    HealthPayload,
+    InputHealth,
+    LinkHealth,
+    MotorTestHealth,
+    OutputHealth,
+)
 from bridge.telemetry.recorder import Recording
 
 log = logging.getLogger(__name__)
@@ -228,19 +238,19 @@ class MotorTestControl:
     def _started_ns(plan: MotorTestPlan, until_ns: int) -> int:
         return until_ns - round(plan.total_s * 1e9)
 
-    def snapshot(self) -> dict[str, Any] | None:
+    def snapshot(self) -> MotorTestHealth | None:
         """The running test for the health report, or None."""
         with self._lock:
             running = self._running
         if running is None:
             return None
         plan, until_ns = running
-        return {
-            "motor": self._stats["motor_test_motor"] or None,  # None between two motors
-            "motors": list(range(plan.first + 1, plan.first + plan.count + 1)),
-            "throttle": plan.fraction,
-            "remaining_s": round(max(0.0, (until_ns - time.monotonic_ns()) / 1e9), 2),
-        }
+        return MotorTestHealth(
+            motor=self._stats["motor_test_motor"] or None,  # None between two motors
+            motors=tuple(range(plan.first + 1, plan.first + plan.count + 1)),
+            throttle=plan.fraction,
+            remaining_s=round(max(0.0, (until_ns - time.monotonic_ns()) / 1e9), 2),
+        )
 
 
 def loop_mode(config: BridgeConfig) -> str:
@@ -519,84 +529,80 @@ class Supervisor:
 
     # -- for the telemetry publishers (called from their threads) --------------------------
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> HealthPayload:
         """The bridge's health: loop state and rates, failsafe, counters."""
-        stats, link = self.stats, self.link.stats
+        stats, link, fanout = self.stats, self.link.stats, self.fanout
         state = LoopState(stats["state"])
         seen = self.input_snapshot.read()
-        return {
-            "state": state.name.lower(),
-            "failsafe": state not in SENDING_COMMANDS,
-            "armed": seen is not None and seen.armed,
-            "motor_test": self.motor_test.snapshot(),
-            "output": {
-                "rate_hz": round(self._output_rate_hz, 1),
-                "configured_rate_hz": self._config.rate_hz,
-                "ticks": stats["ticks"],
-                "frames_sent": stats["frames_sent"],
-                "send_errors": stats["send_errors"],
-                "overruns": stats["overruns"],
-                "tick_errors": stats["tick_errors"],
-                "bus_reopens": stats["bus_reopens"],
-                "realtime": bool(stats["realtime"]),
-            },
-            "input": {
-                "rate_hz": round(link.output_rate_hz, 1),
-                "outputs": stats["input_outputs"],
-                "messages": stats["input_frames"],
-                "bad_data": stats["input_bad_crc"],
-                "invalid": stats["input_invalid"],
-                "mixer_errors": stats["mixer_errors"],
-                "age_ms": round(stats["input_age_us"] / 1000, 1),
-                "out_of_order": stats["input_out_of_order"],
-                "unsigned": stats["input_unsigned"],
-            },
+        return HealthPayload(
+            state=state.name.lower(),
+            failsafe=state not in SENDING_COMMANDS,
+            armed=seen is not None and seen.armed,
+            motor_test=self.motor_test.snapshot(),
+            output=OutputHealth(
+                rate_hz=round(self._output_rate_hz, 1),
+                configured_rate_hz=self._config.rate_hz,
+                ticks=stats["ticks"],
+                frames_sent=stats["frames_sent"],
+                send_errors=stats["send_errors"],
+                overruns=stats["overruns"],
+                tick_errors=stats["tick_errors"],
+                bus_reopens=stats["bus_reopens"],
+                realtime=bool(stats["realtime"]),
+            ),
+            input=InputHealth(
+                rate_hz=round(link.output_rate_hz, 1),
+                outputs=stats["input_outputs"],
+                messages=stats["input_frames"],
+                bad_data=stats["input_bad_crc"],
+                invalid=stats["input_invalid"],
+                mixer_errors=stats["mixer_errors"],
+                age_ms=round(stats["input_age_us"] / 1000, 1),
+                out_of_order=stats["input_out_of_order"],
+                unsigned=stats["input_unsigned"],
+            ),
             # The autopilot link as the loop, its owner, keeps it: what the main process was
             # too slow to take, and what could not be written to the autopilot.
-            "link": {
-                "relay_dropped": stats["relay_dropped"],
-                "sent": stats["link_sent"],
-                "send_dropped": stats["link_dropped"],
-                "reconnects": stats["link_reconnects"],
-            },
-            "escs_online": sum(
-                1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online
+            link=LinkHealth(
+                relay_dropped=stats["relay_dropped"],
+                sent=stats["link_sent"],
+                send_dropped=stats["link_dropped"],
+                reconnects=stats["link_reconnects"],
             ),
-            **self.fanout.counters(),
-        }
+            escs_online=sum(1 for esc in fanout.table.snapshot(time.monotonic_ns()) if esc.online),
+            can_rx=fanout.can_rx(),
+            zenoh=fanout.zenoh_health(),
+        )
 
-    def actuators_input(self) -> dict[str, Any] | None:
+    def actuators_input(self) -> ActuatorsInputPayload | None:
         """What came in: the autopilot's newest outputs (present channels) and their mix."""
         seen = self.input_snapshot.read()
         if seen is None or not seen.inputs:
             return None
-        return {
-            "source": self._config.mavlink.source,
-            "armed": seen.armed,
-            "age_ms": round((time.monotonic_ns() - seen.produced_ns) / 1e6, 1),
-            "channels": {
+        return ActuatorsInputPayload(
+            source=self._config.mavlink.source,
+            armed=seen.armed,
+            age_ms=round((time.monotonic_ns() - seen.produced_ns) / 1e6, 1),
+            channels={
                 name: value
                 for name, value in zip(INPUT_NAMES, seen.inputs, strict=False)
                 if value == value  # NaN: channel absent
             },
-            "mixed": list(seen.fractions) if seen.valid else None,
-        }
+            mixed=tuple(seen.fractions) if seen.valid else None,
+        )
 
-    def actuators_output(self) -> dict[str, Any] | None:
+    def actuators_output(self) -> ActuatorsOutputPayload:
         """What went out: the last command on the bus for each ESC (read back) and why."""
         escs = self.fanout.table.snapshot(time.monotonic_ns())
-        return {
-            "state": LoopState(self.stats["state"]).name.lower(),
-            "commands": [
-                {
-                    "motor": esc.motor,
-                    "node_id": esc.node_id,
-                    "value": esc.command,
-                    "unit": esc.command_unit,
-                }
+        return ActuatorsOutputPayload(
+            state=LoopState(self.stats["state"]).name.lower(),
+            commands=tuple(
+                CommandOut(
+                    motor=esc.motor, node_id=esc.node_id, value=esc.command, unit=esc.command_unit
+                )
                 for esc in escs
-            ],
-        }
+            ),
+        )
 
     def _watch(self) -> None:
         stats = self.stats

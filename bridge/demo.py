@@ -44,6 +44,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from bridge.config import BridgeConfig, ZenohConfig, build_config
+from bridge.errors import PayloadError
 from bridge.escs import registry
 from bridge.monitor import (
     LIVE_PERIOD_S,
@@ -58,6 +59,7 @@ from bridge.monitor import (
     waiting_text,
 )
 from bridge.sim.autopilot import FLIGHT_S, WAITING, Airframe, SimAutopilot, motor_count
+from bridge.telemetry.payload import HealthPayload
 
 if TYPE_CHECKING:
     import zenoh
@@ -315,7 +317,7 @@ class DemoSource(ZenohSource):
 
     def __init__(self, prefix: str, stale_after_s: float = STALE_AFTER_S) -> None:
         super().__init__(prefix, stale_after_s)
-        self.health: dict[str, Any] | None = None
+        self.health: HealthPayload | None = None
         """The last ``bridge/health`` payload."""
 
     @classmethod
@@ -341,17 +343,13 @@ class DemoSource(ZenohSource):
     @property
     def state(self) -> str | None:
         """The bridge's output loop state (``running``, ``disarmed``, ...), if heard."""
-        health = self.health
-        value = None if health is None else health.get("state")
-        return value if isinstance(value, str) else None
+        return None if self.health is None else self.health.state
 
     def _on_health(self, sample: zenoh.Sample) -> None:
         try:
-            value = json.loads(sample.payload.to_bytes())
-        except (UnicodeDecodeError, ValueError):
-            return
-        if isinstance(value, dict):
-            self.health = value
+            self.health = HealthPayload.decode(sample.payload.to_bytes())
+        except PayloadError as exc:
+            self._count_bad(exc)
 
 
 @dataclass
@@ -374,28 +372,22 @@ class Record:
 
     def update(self, vehicles: Sequence[VehicleState]) -> None:
         for vehicle in vehicles:
-            for esc in vehicle.escs:
-                motor = esc.get("motor")
-                if not isinstance(motor, int):
-                    continue
-                entry = self.escs.setdefault(motor, EscRecord(motor))
-                node = esc.get("node_id")
-                entry.node_id = node if isinstance(node, int) else entry.node_id
-                rpm = esc.get("rpm")
-                if isinstance(rpm, int) and not isinstance(rpm, bool):
-                    entry.max_rpm = (
-                        abs(rpm) if entry.max_rpm is None else max(entry.max_rpm, abs(rpm))
-                    )
-                frames = esc.get("frames")
-                if isinstance(frames, int) and not isinstance(frames, bool):
-                    entry.frames = frames
-                entry.online = esc.get("online") is True and not vehicle.stale
+            for row in vehicle.escs:
+                esc = row.telemetry
+                entry = self.escs.setdefault(esc.motor, EscRecord(esc.motor))
+                entry.node_id = esc.node_id
+                if esc.rpm is not None:
+                    rpm = abs(esc.rpm)
+                    entry.max_rpm = rpm if entry.max_rpm is None else max(entry.max_rpm, rpm)
+                if row.frames is not None:
+                    entry.frames = row.frames
+                entry.online = esc.online and not vehicle.stale
 
 
 def all_online(vehicles: Sequence[VehicleState], count: int) -> bool:
     """The demo vehicle reports ``count`` ESCs, all online."""
     return any(
-        not v.stale and len(v.escs) == count and all(e.get("online") is True for e in v.escs)
+        not v.stale and len(v.escs) == count and all(e.telemetry.online for e in v.escs)
         for v in vehicles
     )
 

@@ -32,6 +32,7 @@ from can.typechecking import CanFilter
 from conftest import MULTICAST_GROUP, free_port
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from payloads import HEALTH
 
 from bridge.can_io import (
     apply_filters,
@@ -581,7 +582,7 @@ def make_fanout(config: BridgeConfig, **kwargs: Any) -> Fanout:
         config,
         esc_table(config),
         link,
-        health=dict,
+        health=lambda: HEALTH,
         actuators_input=lambda: None,
         actuators_output=lambda: None,
         **kwargs,
@@ -657,7 +658,7 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
         assert lost <= stats.kernel_drops - drops_before
         own_bus = fanout._own_bus
         assert own_bus is not None and stats.kernel_drops == receive_drops(own_bus)
-        assert fanout.counters()["can_rx"]["kernel_drops"] == stats.kernel_drops
+        assert fanout.can_rx().kernel_drops == stats.kernel_drops
         assert ages[len(ages) // 2] <= MEDIAN_AGE_MS
         # The transmit-only handle queued nothing through it all; a plain one overflowed.
         assert silent_row == (0, 0)
@@ -713,7 +714,7 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_bac
         if recording:
             assert sum(m.arbitration_id == 0x1ABCDE05 for m in recorded) == 5
         assert wait_until(lambda: stats.kernel_drops is not None, 2.0)
-        assert fanout.counters()["can_rx"]["kernel_drops"] == 0
+        assert fanout.can_rx().kernel_drops == 0
     finally:
         fanout.close()
         sim.close()
