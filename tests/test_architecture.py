@@ -8,8 +8,9 @@ which imports it in a fresh interpreter and looks at what came along:
 - the pure layers (ESC codecs, mixing, the ESC state and its Zenoh schema, the safety decision)
   import no I/O layer: not the output loop, the daemon, the CLI or the configuration, at any
   depth of a function;
-- the output loop's process imports nothing it does not run: no CLI, daemon, publishers,
-  monitor, simulator, Zenoh or rich;
+- the output loop's process imports nothing it does not run: no CLI, daemon (nor its health
+  reports and motor-test control), telemetry side (reader, state, publishers), monitor,
+  simulator, demo, Zenoh or rich;
 - nothing outside ``bridge/escs/`` names an ESC family: the families are found through
   ``bridge.escs.registry``.
 """
@@ -133,7 +134,8 @@ def test_there_are_pure_layers_to_check() -> None:
 
 HOT_LOOP = "bridge.output.output_loop"
 NOT_ON_THE_HOT_LOOP = re.compile(
-    r"^(bridge\.(cli|daemon|monitor|sim|telemetry\.(publish|zenoh)|mavlink\.telemetry_out)"
+    r"^(bridge\.(cli|daemon|health|motor_test_control|demo\w*|monitor|sim|telemetry"
+    r"|mavlink\.telemetry_out)"
     r"|zenoh|rich|matplotlib|dronecan)(\.|$)"
 )
 
