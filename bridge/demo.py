@@ -20,38 +20,44 @@ lines of output. The children run in sessions of their own so that the terminal'
 reaches only the demo, which stops them in that order.
 
 The only output is to the ``out`` and ``err`` streams the caller passes (the CLI: stdout and
-stderr).
+stderr). Beside this module: :mod:`bridge.demo_child` (a child process and its last lines) and
+:mod:`bridge.demo_watch` (what the demo watches of the bridge, and the summary).
 """
 
 from __future__ import annotations
 
-import collections
 import json
 import math
 import os
 import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
-from bridge.config import BridgeConfig, ZenohConfig, build_config
+from bridge.config import BridgeConfig, build_config
+from bridge.demo_child import Child
+from bridge.demo_watch import (
+    LOOPBACK,
+    PREFIX,
+    VEHICLE,
+    DemoSource,
+    Record,
+    all_online,
+    summary_text,
+)
 from bridge.escs import registry
 from bridge.monitor import (
     LIVE_PERIOD_S,
     PLAIN_PERIOD_S,
-    STALE_AFTER_S,
     VehicleState,
-    ZenohSource,
-    monitor_zenoh_config,
     plain_text,
     render_table,
     schedule,
@@ -60,14 +66,9 @@ from bridge.monitor import (
 from bridge.sim.autopilot import FLIGHT_S, WAITING, Airframe, SimAutopilot, motor_count
 
 if TYPE_CHECKING:
-    import zenoh
     from rich.console import RenderableType
 
-VEHICLE: Final = "demo"
-PREFIX: Final = f"esc-bridge/{VEHICLE}"
-HEALTH_KEY: Final = f"{PREFIX}/bridge/health"
 MULTICAST_GROUP: Final = "239.74.163.2"
-LOOPBACK: Final = "127.0.0.1"
 
 START_TIMEOUT_S: Final = 30.0
 """The bridge must publish ESC telemetry within this long of the start, or the demo fails."""
@@ -77,8 +78,6 @@ DISARM_WAIT_S: Final = 1.5
 """At the end, how long to wait for the bridge to report the autopilot disarmed."""
 BRIDGE_STOP_TIMEOUT_S: Final = 10.0
 SIM_STOP_TIMEOUT_S: Final = 5.0
-LAST_LINES: Final = 25
-"""Lines of a child's output kept to show when it dies."""
 EXIT_OK: Final = 0
 EXIT_FAILED: Final = 1
 
@@ -239,181 +238,6 @@ def sim_args(options: DemoOptions, ports: DemoPorts) -> list[str]:
 
 
 # -- children -----------------------------------------------------------------------------------
-
-
-class Child:
-    """A subprocess whose output (stdout and stderr merged) is kept, last lines only."""
-
-    def __init__(self, name: str, argv: Sequence[str]) -> None:
-        """Start it, in a session of its own (the terminal's Ctrl-C does not reach it).
-
-        Raises:
-            OSError: it cannot be started.
-        """
-        self.name = name
-        self.argv = list(argv)
-        self.returncode: int | None = None
-        self._lines: collections.deque[str] = collections.deque(maxlen=LAST_LINES)
-        self._lock = threading.Lock()
-        self.proc = subprocess.Popen(
-            self.argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            errors="replace",
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            start_new_session=True,
-        )
-        self._reader = threading.Thread(target=self._read, name=f"demo-{name}-output", daemon=True)
-        self._reader.start()
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def _read(self) -> None:
-        stream = self.proc.stdout
-        if stream is None:
-            return
-        for line in stream:
-            with self._lock:
-                self._lines.append(line.rstrip("\n"))
-
-    def last_lines(self) -> list[str]:
-        with self._lock:
-            return list(self._lines)
-
-    def poll(self) -> int | None:
-        self.returncode = self.proc.poll()
-        return self.returncode
-
-    def stop(self, timeout_s: float) -> tuple[int, bool]:
-        """SIGTERM and wait; SIGKILL when it does not exit in time. (exit status, killed).
-        Stopping a child that already exited only collects its status."""
-        killed = False
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-                killed = True
-        self._reader.join(2.0)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-        self.returncode = self.proc.returncode
-        return self.proc.returncode, killed
-
-
-# -- what the monitor saw -------------------------------------------------------------------
-
-
-class DemoSource(ZenohSource):
-    """The monitor's source, also following the bridge's ``bridge/health``."""
-
-    def __init__(self, prefix: str, stale_after_s: float = STALE_AFTER_S) -> None:
-        super().__init__(prefix, stale_after_s)
-        self.health: dict[str, Any] | None = None
-        """The last ``bridge/health`` payload."""
-
-    @classmethod
-    def connect(cls, endpoint: str) -> DemoSource:
-        """A peer session connected to the bridge's endpoint, scouting off, listening on
-        loopback only.
-
-        Raises:
-            ConfigError: the endpoint is malformed.
-            LinkError: the session cannot be opened.
-        """
-        # What the monitor makes of a bridge listening there, but listening on loopback only
-        # itself (a peer otherwise listens on every interface).
-        bridge_side = ZenohConfig(listen=(endpoint,), multicast_scouting=False, vehicle=VEHICLE)
-        settings = replace(monitor_zenoh_config(bridge_side), listen=(f"tcp/{LOOPBACK}:0",))
-        source = cls.open(settings, PREFIX)
-        assert isinstance(source, DemoSource)
-        session = source._session
-        if session is not None:
-            session.declare_subscriber(HEALTH_KEY, source._on_health)
-        return source
-
-    @property
-    def state(self) -> str | None:
-        """The bridge's output loop state (``running``, ``disarmed``, ...), if heard."""
-        health = self.health
-        value = None if health is None else health.get("state")
-        return value if isinstance(value, str) else None
-
-    def _on_health(self, sample: zenoh.Sample) -> None:
-        try:
-            value = json.loads(sample.payload.to_bytes())
-        except (UnicodeDecodeError, ValueError):
-            return
-        if isinstance(value, dict):
-            self.health = value
-
-
-@dataclass
-class EscRecord:
-    """One ESC over the whole demo, for the summary."""
-
-    motor: int
-    node_id: int | None = None
-    max_rpm: int | None = None
-    frames: int | None = None
-    online: bool = False
-    """Online at the last look before the bridge was stopped."""
-
-
-@dataclass
-class Record:
-    """Everything the summary needs, updated at every redraw."""
-
-    escs: dict[int, EscRecord] = field(default_factory=dict)
-
-    def update(self, vehicles: Sequence[VehicleState]) -> None:
-        for vehicle in vehicles:
-            for esc in vehicle.escs:
-                motor = esc.get("motor")
-                if not isinstance(motor, int):
-                    continue
-                entry = self.escs.setdefault(motor, EscRecord(motor))
-                node = esc.get("node_id")
-                entry.node_id = node if isinstance(node, int) else entry.node_id
-                rpm = esc.get("rpm")
-                if isinstance(rpm, int) and not isinstance(rpm, bool):
-                    entry.max_rpm = (
-                        abs(rpm) if entry.max_rpm is None else max(entry.max_rpm, abs(rpm))
-                    )
-                frames = esc.get("frames")
-                if isinstance(frames, int) and not isinstance(frames, bool):
-                    entry.frames = frames
-                entry.online = esc.get("online") is True and not vehicle.stale
-
-
-def all_online(vehicles: Sequence[VehicleState], count: int) -> bool:
-    """The demo vehicle reports ``count`` ESCs, all online."""
-    return any(
-        not v.stale and len(v.escs) == count and all(e.get("online") is True for e in v.escs)
-        for v in vehicles
-    )
-
-
-def summary_text(record: Record, count: int) -> str:
-    """Per ESC: max rpm seen, frames, online at the end."""
-    lines = [f"{'motor':>5}  {'node':>4}  {'max rpm':>7}  {'frames':>7}  online"]
-    for motor in range(1, count + 1):
-        esc = record.escs.get(motor, EscRecord(motor))
-        lines.append(
-            f"{motor:>5}  {_or_dash(esc.node_id):>4}  {_or_dash(esc.max_rpm):>7}  "
-            f"{_or_dash(esc.frames):>7}  {'yes' if esc.online else 'no'}"
-        )
-    return "\n".join(lines)
-
-
-def _or_dash(value: int | None) -> str:
-    return "-" if value is None else str(value)
 
 
 # -- the demo ---------------------------------------------------------------------------------

@@ -7,6 +7,7 @@
     ├── LinkError (ConnectionError)       a CAN bus or MAVLink link cannot be opened or used
     │   └── NoAnswerError (TimeoutError)  an ESC did not answer a request within the timeout
     │       └── WrongNodeError            ... but another node answered it
+    ├── PayloadError (ValueError)         a Zenoh payload that is not what its key carries
     ├── SetupError                        an ESC set-up step cannot be done as the bus stands
     │   └── RefusedError                  an ESC answered with values other than those asked
     └── CodecError (ValueError)           a CAN frame or a value cannot be coded
@@ -36,6 +37,11 @@ class ConfigError(BridgeError, ValueError):
 
 class LinkError(BridgeError, ConnectionError):
     """A CAN bus or MAVLink link could not be opened, or failed beyond recovery."""
+
+
+class PayloadError(BridgeError, ValueError):
+    """A Zenoh payload that is not the JSON its key carries: the message names the key and the
+    field (:mod:`bridge.telemetry.payload`)."""
 
 
 class NoAnswerError(LinkError, TimeoutError):

@@ -43,7 +43,7 @@ from bridge.mavlink.esc_messages import describe_sets
 from bridge.mixing.definition import AXIS_NAMES, CHANNEL_COUNT, PWM_RANGE_US, MixerDefinition
 from bridge.mixing.loader import load_mixer
 from bridge.output.busload import check_bus_load
-from bridge.zenoh_out import session_config
+from bridge.telemetry.zenoh_out import session_config
 
 __all__ = [
     "SOURCE_CHANNELS",

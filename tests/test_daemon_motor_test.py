@@ -19,6 +19,7 @@ from pymavlink import mavutil
 
 from bridge.escs import ckesc, ft
 from bridge.mavlink import load_dialect
+from bridge.telemetry.payload import HealthPayload
 
 dialect = load_dialect()
 START_TIMEOUT_S = 10.0  # a cold start spawns the loop's interpreter first
@@ -160,7 +161,7 @@ def test_percent_spins_one_motor_for_the_capped_timeout_and_shows_in_health(
     config = write_config(tmp_path / "b.toml", gcs, "[output]\nmotor_test_max_s = 1.0\n")
     daemon = start_daemon("--config", config, "--zenoh-listen", endpoint, "--vehicle", "mt")
     ready(autopilot, observer, gcs)
-    health: list[dict[str, Any]] = []
+    health: list[HealthPayload] = []
     zconfig = zenoh.Config()
     zconfig.insert_json5("connect/endpoints", json.dumps([endpoint]))
     zconfig.insert_json5("listen/endpoints", "[]")
@@ -168,16 +169,16 @@ def test_percent_spins_one_motor_for_the_capped_timeout_and_shows_in_health(
     with zenoh.open(zconfig) as session:
         session.declare_subscriber(
             "esc-bridge/mt/bridge/health",
-            lambda sample: health.append(json.loads(sample.payload.to_bytes())),
+            lambda sample: health.append(HealthPayload.decode(sample.payload.to_bytes())),
         )
         assert gcs.motor_test(2, PERCENT, 30, timeout_s=20) == ACCEPTED  # cut to 1 s
         times = throttle_run(observer, (0, 600, 0, 0), 3.0)
     assert 0.85 <= times[-1] - times[0] <= 1.3  # the cap, not the 20 s asked
     assert len(times) >= 0.85 * 400 * 0.5  # at the loop's rate (400 Hz; generous)
-    testing = [h for h in health if h["state"] == "motor_test"]
-    assert testing, [h["state"] for h in health]
-    assert testing[0]["motor_test"]["motor"] == 2
-    assert testing[0]["motor_test"]["throttle"] == pytest.approx(0.3)
+    testing = [h.motor_test for h in health if h.state == "motor_test"]
+    assert testing, [h.state for h in health]
+    assert testing[0] is not None and testing[0].motor == 2
+    assert testing[0].throttle == pytest.approx(0.3)
     time.sleep(0.3)  # the supervisor reports the end within 0.1 s
     texts = gcs.texts()
     assert "Motor test: motor 2 30% 1s (cut to 1 s)" in texts

@@ -5,7 +5,9 @@ the monitor print a plain-text table every second and a final one, which these t
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -23,6 +25,7 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, can_args, free_port, multicast
 
 from bridge.cli import main
 from bridge.config import ZenohConfig
+from bridge.errors import PayloadError
 from bridge.escs import ckesc, ft
 from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.monitor import (
@@ -32,7 +35,8 @@ from bridge.monitor import (
     plain_text,
     prefix_of,
 )
-from bridge.monitor.sources import parse_info, parse_status
+from bridge.monitor.view import EscRow
+from bridge.telemetry.payload import EscInfoPayload, EscStatusPayload, EscTelemetryPayload
 
 Row = dict[str, str]
 
@@ -324,7 +328,7 @@ def test_ctrl_c_ends_cleanly_with_a_final_table(can_port: int) -> None:
 
 
 def esc_dict(motor: int, **values: Any) -> dict[str, Any]:
-    """A telemetry dict as EscSnapshot.telemetry_dict() makes it."""
+    """A telemetry object as the bridge publishes it (README: Zenoh out), written out."""
     esc: dict[str, Any] = {
         "motor": motor,
         "node_id": motor,
@@ -440,7 +444,15 @@ def test_zenoh_vehicles_values_and_staleness() -> None:
         try:
             lines.wait_for("waiting for esc-bridge on esc-bridge/*", 15)
             session.put("esc-bridge/testvehicle/esc/status", b"not json")
-            info = {"motor": 1, "node_id": 1, "online": True, "frames": 1234, "errors": 5}
+            info = {
+                "motor": 1,
+                "node_id": 1,
+                "online": True,
+                "frames": 1234,
+                "errors": 5,
+                "failure_flags": 0,
+                "counters": {},
+            }
             start = time.monotonic()
             while proc.poll() is None:
                 session.put(
@@ -567,19 +579,14 @@ def test_failure_flags_are_named() -> None:
     assert failure_names(None) == "-"
 
 
-def test_malformed_values_show_as_missing() -> None:
-    weird: dict[str, Any] = {
-        "motor": "one",
-        "rpm": float("nan"),
-        "voltage_v": "12",
-        "temperature_c": [1, 2],
-        "throttle": True,
-        "failure_flags": "x",
-        "age_ms": None,
-    }
-    text = plain_text([VehicleState("v", (weird, {}))])
-    row = tables(text)[0][1][0]
-    assert set(row.values()) <= {"-", "offline"}
+def test_values_not_reported_show_as_missing() -> None:
+    esc = EscTelemetryPayload.decode(json.dumps(esc_dict(3, online=False, age_ms=None)).encode())
+    nan = replace(esc, voltage_v=math.nan, throttle=math.inf)  # never on the wire, still "-"
+    text = plain_text([VehicleState("v", (EscRow(esc), EscRow(nan)))])
+    for row in tables(text)[0][1]:
+        assert row.pop("motor") == row.pop("node") == "3"
+        assert (row.pop("state"), row.pop("flags"), row.pop("mAh")) == ("offline", "", "0")
+        assert set(row.values()) == {"-"}
 
 
 def test_a_bridge_config_becomes_the_monitors_side_of_it() -> None:
@@ -602,14 +609,18 @@ def test_a_bridge_config_becomes_the_monitors_side_of_it() -> None:
     assert prefix_of(replace(bridge, prefix="fleet/a")) == "fleet/a"
 
 
-def test_payloads_that_are_not_ours_are_refused() -> None:
-    assert parse_status(b"not json") is None
-    assert parse_status(b"[1, 2]") is None
-    assert parse_status(b'{"escs": [1]}') is None
-    assert parse_status(b"\xff\xfe") is None
-    assert parse_status(b'{"escs": [{"motor": 1}]}') == ({"motor": 1},)
-    assert parse_info(b'{"motor": [1], "frames": 3}') is None
-    assert parse_info(b'{"motor": 2, "frames": 3, "errors": 0, "counters": {}}') == (
-        2,
-        {"frames": 3, "errors": 0},
-    )
+def test_payloads_that_are_not_ours_are_refused_naming_key_and_field() -> None:
+    for payload, why in (
+        (b"not json", "esc/status: not JSON"),
+        (b"\xff\xfe", "esc/status: not JSON"),
+        (b"[1, 2]", "esc/status: payload: expected an object, got [1, 2]"),
+        (b'{"count": 1, "online": 1, "escs": [1]}', "esc/status: field escs[0]: expected an obj"),
+        (b'{"count": 1, "online": 1, "escs": [{"motor": 1}]}', "field escs[0].node_id missing"),
+    ):
+        with pytest.raises(PayloadError, match=re.escape(why)):
+            EscStatusPayload.decode(payload)
+    with pytest.raises(PayloadError, match=re.escape("esc/<n>/info: field motor: expected an i")):
+        EscInfoPayload.decode(b'{"motor": [1], "frames": 3}')
+    info = b'{"motor": 2, "node_id": 5, "online": true, "frames": 3, "errors": 0, '
+    info += b'"failure_flags": 0, "counters": {}, "added_later": 1}'  # unknown names: ignored
+    assert EscInfoPayload.decode(info).frames == 3

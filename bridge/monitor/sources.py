@@ -1,30 +1,33 @@
 """Where the monitor's telemetry comes from: a bridge over Zenoh, or the CAN bus itself.
 
-Both sources give the same thing, :meth:`vehicles`: the latest ESC telemetry dicts per vehicle
-(:class:`~bridge.monitor.view.VehicleState`), taken whenever the screen is redrawn. Neither
+Both sources give the same thing, :meth:`vehicles`: the latest ESC telemetry records per vehicle
+(:class:`~bridge.monitor.view.VehicleState`), taken whenever the screen is redrawn. Over Zenoh,
+each payload is decoded by :mod:`bridge.telemetry.payload`; one that is not what its key
+carries is counted and dropped. Neither
 ever sends anything to the ESCs: the CAN source opens the bus and only reads it.
 
-Only :class:`ZenohSource` imports zenoh (through :mod:`bridge.zenoh_out`), and only when opened.
+Only :class:`ZenohSource` imports zenoh (through :mod:`bridge.telemetry.zenoh_out`), and only
+when opened.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 import threading
 import time
 from dataclasses import dataclass, field, replace
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Protocol, Self
+from typing import TYPE_CHECKING, Protocol, Self
 
-from bridge.can_in import CanReader
 from bridge.can_io import check_interface, open_bus
 from bridge.config import BridgeConfig, ZenohConfig
-from bridge.errors import ConfigError, LinkError
+from bridge.errors import ConfigError, LinkError, PayloadError
 from bridge.escs import registry
-from bridge.monitor.view import VehicleState
+from bridge.monitor.view import EscRow, VehicleState
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.payload import EscInfoPayload, EscStatusPayload, EscTelemetryPayload
+from bridge.telemetry.reader import CanReader
 
 if TYPE_CHECKING:
     import can
@@ -107,39 +110,15 @@ def _loopback(endpoint: str) -> str:
     return endpoint
 
 
-def parse_status(payload: bytes) -> tuple[dict[str, Any], ...] | None:
-    """The ESC dicts of an ``esc/status`` payload, or None if it is not one."""
-    try:
-        value = json.loads(payload)
-    except (UnicodeDecodeError, ValueError):
-        return None
-    if not isinstance(value, dict):
-        return None
-    escs = value.get("escs")
-    if not isinstance(escs, list) or not all(isinstance(e, dict) for e in escs):
-        return None
-    return tuple(escs)
-
-
-def parse_info(payload: bytes) -> tuple[int, dict[str, Any]] | None:
-    """(motor, {frames, errors}) of an ``esc/<n>/info`` payload, or None if it is not one."""
-    try:
-        value = json.loads(payload)
-    except (UnicodeDecodeError, ValueError):
-        return None
-    if not isinstance(value, dict) or not isinstance(value.get("motor"), int):
-        return None
-    return value["motor"], {k: value[k] for k in ("frames", "errors") if k in value}
-
-
 @dataclass
 class _Vehicle:
-    escs: tuple[dict[str, Any], ...] = ()
+    escs: tuple[EscTelemetryPayload, ...] = ()
     received: float | None = None  # monotonic time of the last esc/status
-    info: dict[int, dict[str, Any]] = field(default_factory=dict)
+    info: dict[int, EscInfoPayload] = field(default_factory=dict)
 
-    def info_of(self, motor: object) -> dict[str, Any]:
-        return self.info.get(motor, {}) if isinstance(motor, int) else {}
+    def row(self, esc: EscTelemetryPayload) -> EscRow:
+        info = self.info.get(esc.motor)
+        return EscRow(esc) if info is None else EscRow(esc, info.frames, info.errors)
 
 
 class ZenohSource:
@@ -173,7 +152,7 @@ class ZenohSource:
             raise ConfigError(f"prefix {prefix!r}: expected {problem}")
         import zenoh  # only the Zenoh source needs it
 
-        from bridge.zenoh_out import session_config
+        from bridge.telemetry.zenoh_out import session_config
 
         source = cls(prefix)
         settings = session_config(config)
@@ -198,7 +177,7 @@ class ZenohSource:
                 if vehicle.received is None:  # only esc/<n>/info so far
                     continue
                 age = now - vehicle.received
-                escs = tuple(esc | vehicle.info_of(esc.get("motor")) for esc in vehicle.escs)
+                escs = tuple(vehicle.row(esc) for esc in vehicle.escs)
                 states.append(
                     VehicleState(vehicle_name(name), escs, age > self._stale_after_s, age)
                 )
@@ -228,26 +207,32 @@ class ZenohSource:
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        escs = parse_status(sample.payload.to_bytes())
+        try:
+            status = EscStatusPayload.decode(sample.payload.to_bytes())
+        except PayloadError as exc:
+            self._count_bad(exc)
+            return
         now = time.monotonic()
         with self._lock:
-            if escs is None:
-                self.bad_messages += 1
-                return
             vehicle = self._vehicles.setdefault(_key_prefix(key, STATUS_SUFFIX), _Vehicle())
-            vehicle.escs = escs
+            vehicle.escs = status.escs
             vehicle.received = now
 
     def _on_info(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        info = parse_info(sample.payload.to_bytes())
+        try:
+            info = EscInfoPayload.decode(sample.payload.to_bytes())
+        except PayloadError as exc:
+            self._count_bad(exc)
+            return
         with self._lock:
-            if info is None:
-                self.bad_messages += 1
-                return
-            motor, counts = info
             vehicle = self._vehicles.setdefault(key.rsplit("/esc/", 1)[0], _Vehicle())
-            vehicle.info[motor] = counts
+            vehicle.info[info.motor] = info
+
+    def _count_bad(self, exc: PayloadError) -> None:
+        with self._lock:
+            self.bad_messages += 1
+        log.debug("dropped a payload: %s", exc)
 
 
 def _without_sources(exc: Exception) -> str:
@@ -298,7 +283,7 @@ class CanSource:
     def vehicles(self) -> list[VehicleState]:
         stats = self.reader.stats
         escs = tuple(
-            snap.telemetry_dict() | {"frames": snap.frames, "errors": snap.errors}
+            EscRow(EscTelemetryPayload.of(snap), snap.frames, snap.errors)
             for snap in self.table.snapshot(time.monotonic_ns())
         )
         note = f"{stats.frames} frames read, {stats.malformed} malformed"

@@ -1,16 +1,15 @@
-"""The monitor's table: pure functions from ESC telemetry dicts to a rich table or plain text.
+"""The monitor's table: pure functions from ESC telemetry records to a rich table or plain text.
 
-An ESC is one :meth:`~bridge.telemetry.state.EscSnapshot.telemetry_dict` (the JSON the bridge
-publishes on ``esc/status``), optionally with ``frames`` and ``errors`` from its
-:meth:`~bridge.telemetry.state.EscSnapshot.info_dict`. Values arrive over the network, so every
-cell is formatted defensively: a missing or mistyped value shows as ``-``, never an exception.
+An ESC is one :class:`EscRow`: the record the bridge publishes in ``esc/status`` (decoded, so
+every value has its type), with ``frames`` and ``errors`` from its ``esc/<n>/info`` once heard.
+A value not reported, or a number that is not finite, shows as ``-``.
 """
 
 from __future__ import annotations
 
 import io
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +27,7 @@ from bridge.escs.family import (
     FAILURE_OVER_TEMPERATURE,
     FAILURE_OVER_VOLTAGE,
 )
+from bridge.telemetry.payload import EscTelemetryPayload
 
 # MAVLink ESC_FAILURE_FLAGS bits -> the short names the table shows.
 FAILURE_NAMES: tuple[tuple[int, str], ...] = (
@@ -42,7 +42,16 @@ FAILURE_NAMES: tuple[tuple[int, str], ...] = (
 PLAIN_WIDTH = 250  # wide enough that no plain-text table ever wraps a cell
 MISSING = "-"
 
-Esc = Mapping[str, Any]
+
+@dataclass(frozen=True)
+class EscRow:
+    """One ESC as the monitor shows it."""
+
+    telemetry: EscTelemetryPayload
+    frames: int | None = None
+    """Telemetry frames received, from ``esc/<n>/info`` (None: not heard yet)."""
+    errors: int | None = None
+    """CRC and format errors, from ``esc/<n>/info`` (None: not heard yet)."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +60,8 @@ class VehicleState:
 
     name: str
     """The vehicle's name (its key prefix, without a leading ``esc-bridge/``) or the bus."""
-    escs: tuple[Esc, ...]
-    """One telemetry dict per ESC, in motor order."""
+    escs: tuple[EscRow, ...]
+    """One row per ESC, in motor order."""
     stale: bool = False
     """No message from this vehicle within the stale limit (Zenoh only)."""
     age_s: float | None = None
@@ -61,10 +70,10 @@ class VehicleState:
     """A line shown under the table (reader counters, malformed messages)."""
 
 
-def failure_names(flags: object) -> str:
+def failure_names(flags: int | None) -> str:
     """ESC_FAILURE_FLAGS as short names joined by spaces, unnamed bits as hex; ``""`` for no
     failure, ``-`` when the flags are missing."""
-    if not isinstance(flags, int) or isinstance(flags, bool):
+    if flags is None:
         return MISSING
     value = int(flags)
     names = [name for bit, name in FAILURE_NAMES if value & bit]
@@ -152,7 +161,7 @@ def _title(vehicles: Sequence[VehicleState]) -> str:
 
 
 def _online_count(vehicle: VehicleState) -> str:
-    online = sum(1 for esc in vehicle.escs if esc.get("online") is True)
+    online = sum(1 for esc in vehicle.escs if esc.telemetry.online)
     return f"{online}/{len(vehicle.escs)} ESCs online"
 
 
@@ -160,60 +169,46 @@ def _age_s(age_s: float | None) -> str:
     return MISSING if age_s is None else f"{age_s:.1f} s"
 
 
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _number(value: object, digits: int, scale: float = 1.0) -> str:
-    if not _is_number(value):
+def _number(value: float | None, digits: int, scale: float = 1.0) -> str:
+    if value is None or not math.isfinite(value):
         return MISSING
-    return f"{float(value) * scale:.{digits}f}"  # type: ignore[arg-type]
+    return f"{float(value) * scale:.{digits}f}"
 
 
-def _temp(esc: Esc, sensor: str) -> str:
-    temps = esc.get("temperature_c")
-    return _number(temps.get(sensor), 0) if isinstance(temps, Mapping) else MISSING
+def _integer(value: int | None) -> str:
+    return MISSING if value is None else str(value)
 
 
-def _integer(value: object) -> str:
-    return str(value) if _is_int(value) else MISSING
-
-
-def _state(esc: Esc, stale: bool) -> str:
+def _state(esc: EscRow, stale: bool) -> str:
     if stale:
         return "stale"
-    return "online" if esc.get("online") is True else "offline"
+    return "online" if esc.telemetry.online else "offline"
 
 
-def _age_ms(value: object) -> str:
-    if not _is_number(value):
+def _age_ms(value: float | None) -> str:
+    if value is None or not math.isfinite(value):
         return MISSING
-    ms = float(value)  # type: ignore[arg-type]
-    return f"{ms:.0f} ms" if ms < 1000 else f"{ms / 1000:.1f} s"
+    return f"{value:.0f} ms" if value < 1000 else f"{value / 1000:.1f} s"
 
 
-# (header, justify) of every column, and how each cell is made from an ESC's dict.
-_CELLS: tuple[tuple[str, str, Callable[[Esc, bool], str]], ...] = (
-    ("motor", "right", lambda e, s: _integer(e.get("motor"))),
-    ("node", "right", lambda e, s: _integer(e.get("node_id"))),
+# (header, justify) of every column, and how each cell is made from an ESC's row.
+_CELLS: tuple[tuple[str, str, Callable[[EscRow, bool], str]], ...] = (
+    ("motor", "right", lambda e, s: _integer(e.telemetry.motor)),
+    ("node", "right", lambda e, s: _integer(e.telemetry.node_id)),
     ("state", "left", _state),
-    ("rpm", "right", lambda e, s: _integer(e.get("rpm"))),
-    ("V", "right", lambda e, s: _number(e.get("voltage_v"), 2)),
-    ("A", "right", lambda e, s: _number(e.get("current_a"), 2)),
-    ("mAh", "right", lambda e, s: _number(e.get("consumed_mah"), 0)),
-    ("MOS°C", "right", lambda e, s: _temp(e, "mos")),
-    ("motor°C", "right", lambda e, s: _temp(e, "motor")),
-    ("cap°C", "right", lambda e, s: _temp(e, "capacitor")),
-    ("MCU°C", "right", lambda e, s: _temp(e, "mcu")),
-    ("thr%", "right", lambda e, s: _number(e.get("throttle"), 0, 100.0)),
-    ("flags", "left", lambda e, s: failure_names(e.get("failure_flags"))),
-    ("frames", "right", lambda e, s: _integer(e.get("frames"))),
-    ("errors", "right", lambda e, s: _integer(e.get("errors"))),
-    ("age", "right", lambda e, s: _age_ms(e.get("age_ms"))),
+    ("rpm", "right", lambda e, s: _integer(e.telemetry.rpm)),
+    ("V", "right", lambda e, s: _number(e.telemetry.voltage_v, 2)),
+    ("A", "right", lambda e, s: _number(e.telemetry.current_a, 2)),
+    ("mAh", "right", lambda e, s: _number(e.telemetry.consumed_mah, 0)),
+    ("MOS°C", "right", lambda e, s: _number(e.telemetry.temperature_c.mos, 0)),
+    ("motor°C", "right", lambda e, s: _number(e.telemetry.temperature_c.motor, 0)),
+    ("cap°C", "right", lambda e, s: _number(e.telemetry.temperature_c.capacitor, 0)),
+    ("MCU°C", "right", lambda e, s: _number(e.telemetry.temperature_c.mcu, 0)),
+    ("thr%", "right", lambda e, s: _number(e.telemetry.throttle, 0, 100.0)),
+    ("flags", "left", lambda e, s: failure_names(e.telemetry.failure_flags)),
+    ("frames", "right", lambda e, s: _integer(e.frames)),
+    ("errors", "right", lambda e, s: _integer(e.errors)),
+    ("age", "right", lambda e, s: _age_ms(e.telemetry.age_ms)),
 )
 _MIN_WIDTHS = {
     "state": len("offline"),
@@ -226,7 +221,7 @@ COLUMNS: tuple[tuple[str, Any], ...] = tuple((header, justify) for header, justi
 """The table's columns after the optional vehicle column: (header, justification)."""
 
 
-def _cells(esc: Esc, stale: bool) -> list[tuple[str, str]]:
+def _cells(esc: EscRow, stale: bool) -> list[tuple[str, str]]:
     return [(header, cell(esc, stale)) for header, _, cell in _CELLS]
 
 

@@ -1,10 +1,10 @@
 """A recording's files, and what the plot needs from its tlog.
 
-A recording (:mod:`bridge.record`) is two files named by its start time in one directory: the
-candump ``.log`` of every CAN frame (read by :mod:`bridge.capture`) and the ``.tlog`` of the
-MAVLink traffic, each record an 8-byte big-endian µs wall-clock stamp and one frame as received
-or sent. From the tlog the plot takes the autopilot's HEARTBEATs (its arming state) and every
-STATUSTEXT (the bridge's own reports of its output state among them); the other messages are
+A recording (:mod:`bridge.telemetry.recorder`) is two files named by its start time in one
+directory: the candump ``.log`` of every CAN frame (read by :mod:`bridge.capture`) and the ``.tlog``
+of the MAVLink traffic, each record an 8-byte big-endian µs wall-clock stamp and one frame as
+received or sent. From the tlog the plot takes the autopilot's HEARTBEATs (its arming state) and
+every STATUSTEXT (the bridge's own reports of its output state among them); the other messages are
 skipped by their ID without being decoded.
 """
 
@@ -18,7 +18,7 @@ from typing import Any, Final
 from bridge.errors import ConfigError
 
 NAME_PREFIX: Final = "esc-bridge-"
-"""Every recording's files start so (:data:`bridge.record.NAME_FORMAT`)."""
+"""Every recording's files start so (:data:`bridge.telemetry.recorder.NAME_FORMAT`)."""
 LOG_SUFFIX: Final = ".log"
 TLOG_SUFFIX: Final = ".tlog"
 MAV_AUTOPILOT_INVALID: Final = 8

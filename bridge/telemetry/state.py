@@ -3,7 +3,7 @@
 Pure bookkeeping, no I/O: the CAN reader feeds it telemetry in the neutral record of
 :mod:`bridge.escs.family` (each ESC family maps its own frames into it), commands read back
 and codec errors, with their receive times; the publishers (MAVLink, Zenoh, the monitor) take
-:class:`EscSnapshot` copies.
+:class:`EscSnapshot` copies (:mod:`bridge.telemetry.payload` makes the Zenoh JSON of them).
 One lock guards it, held only for a few attribute updates, so neither side waits on the other.
 
 ESCs are keyed by motor: motor *n* (1-based, the mixer's output order) is the ESC whose ID
@@ -21,7 +21,6 @@ import threading
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 from bridge.escs.family import (
     FAILURE_GENERIC,
@@ -102,43 +101,6 @@ class EscSnapshot:
             return self.mos_temp_c
         known = [t for t in (self.capacitor_temp_c, self.mcu_temp_c) if t is not None]
         return max(known) if known else None
-
-    def telemetry_dict(self) -> dict[str, Any]:
-        """The fast data, as published on ``esc/<n>/telemetry`` (README: Zenoh schema)."""
-        return {
-            "motor": self.motor,
-            "node_id": self.node_id,
-            "online": self.online,
-            "age_ms": None if self.age_ms is None else round(self.age_ms, 1),
-            "rpm": self.rpm,
-            "voltage_v": self.voltage_v,
-            "current_a": self.current_a,
-            "motor_current_a": self.motor_current_a,
-            "throttle": self.throttle,
-            "temperature_c": {
-                "mos": self.mos_temp_c,
-                "capacitor": self.capacitor_temp_c,
-                "motor": self.motor_temp_c,
-                "mcu": self.mcu_temp_c,
-            },
-            "status": self.status,
-            "failure_flags": self.failure_flags,
-            "consumed_mah": round(self.consumed_mah, 3),
-            "command": self.command,
-            "command_unit": self.command_unit,
-        }
-
-    def info_dict(self) -> dict[str, Any]:
-        """The slow data, as published on ``esc/<n>/info``."""
-        return {
-            "motor": self.motor,
-            "node_id": self.node_id,
-            "online": self.online,
-            "frames": self.frames,
-            "errors": self.errors,
-            "failure_flags": self.failure_flags,
-            "counters": dict(self.counters),
-        }
 
 
 class _Esc:

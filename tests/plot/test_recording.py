@@ -20,7 +20,7 @@ from bridge.plot.recording import (
     tlog_events,
     tlog_records,
 )
-from bridge.record import Recording
+from bridge.telemetry.recorder import Recording
 
 T0_US = 1_790_000_000_000_000
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from bridge.daemon import SEVERITY_CRITICAL, STATE_REPORTS
+from bridge.health import STATE_REPORTS
 from bridge.plot.recording import Heartbeat, StatusText
 from bridge.plot.spans import (
     ARMED,
@@ -20,6 +20,7 @@ from bridge.plot.spans import (
     bridge_state,
     stopped_while_armed,
 )
+from bridge.severity import SEVERITY_CRITICAL
 
 
 def beats(*pairs: tuple[float, bool]) -> list[Heartbeat]:

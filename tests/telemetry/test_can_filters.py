@@ -1,4 +1,5 @@
-"""What the bridge's CAN handles receive (bridge/can_io.py, bridge/can_in.py, bridge/fanout.py).
+"""What the bridge's CAN handles receive (bridge/can_io.py, bridge/telemetry/reader.py,
+bridge/telemetry/fanout.py).
 
 The filters are checked against the protocols' ID layouts (PROTOCOLS.md §1.1, §2.1) written out
 again here, through python-can's own matching on a ``virtual`` and a ``udp_multicast`` bus and
@@ -31,8 +32,8 @@ from can.typechecking import CanFilter
 from conftest import MULTICAST_GROUP, free_port
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from payloads import HEALTH
 
-from bridge.can_in import CanReader, reader_filters
 from bridge.can_io import (
     apply_filters,
     enlarge_receive_buffer,
@@ -44,10 +45,11 @@ from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
 from bridge.escs import ckesc, ft, registry, uavcan_v0
 from bridge.escs.ft.sim import SimFt
-from bridge.fanout import Fanout
 from bridge.mavlink.link import MavlinkLink
 from bridge.sim.runner import Simulator, make_escs
+from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.reader import CanReader, reader_filters
 from bridge.telemetry.state import EscTable
 
 MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's IPv6 default
@@ -580,7 +582,7 @@ def make_fanout(config: BridgeConfig, **kwargs: Any) -> Fanout:
         config,
         esc_table(config),
         link,
-        health=dict,
+        health=lambda: HEALTH,
         actuators_input=lambda: None,
         actuators_output=lambda: None,
         **kwargs,
@@ -656,7 +658,7 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
         assert lost <= stats.kernel_drops - drops_before
         own_bus = fanout._own_bus
         assert own_bus is not None and stats.kernel_drops == receive_drops(own_bus)
-        assert fanout.counters()["can_rx"]["kernel_drops"] == stats.kernel_drops
+        assert fanout.can_rx().kernel_drops == stats.kernel_drops
         assert ages[len(ages) // 2] <= MEDIAN_AGE_MS
         # The transmit-only handle queued nothing through it all; a plain one overflowed.
         assert silent_row == (0, 0)
@@ -712,7 +714,7 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_bac
         if recording:
             assert sum(m.arbitration_id == 0x1ABCDE05 for m in recorded) == 5
         assert wait_until(lambda: stats.kernel_drops is not None, 2.0)
-        assert fanout.counters()["can_rx"]["kernel_drops"] == 0
+        assert fanout.can_rx().kernel_drops == 0
     finally:
         fanout.close()
         sim.close()

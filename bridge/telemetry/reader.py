@@ -82,8 +82,8 @@ class CanReader:
     reopens it when it fails, and the reader reads whichever handle is current.
 
     The reader reads whatever its handle lets through; whoever opens the handle chooses that
-    (:func:`reader_filters`, used by :class:`~bridge.fanout.Fanout`). On socketcan the kernel
-    filters, so a flood of other traffic costs the reader nothing. On interfaces without
+    (:func:`reader_filters`, used by :class:`~bridge.telemetry.fanout.Fanout`). On socketcan the
+    kernel filters, so a flood of other traffic costs the reader nothing. On interfaces without
     kernel filtering (udp_multicast, virtual) python-can filters in software inside
     ``recv``: the frames the filters refuse never reach the recorder, the decoders or
     :attr:`stats`, but the reader still reads each one, so a flood still costs it CPU, and

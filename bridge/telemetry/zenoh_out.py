@@ -2,18 +2,19 @@
 
 Keys, all under :meth:`bridge.config.ZenohConfig.key_prefix` (default ``esc-bridge/<vehicle>``):
 
-=========================  ==============================================  ==============
-key                        payload (JSON, ``application/json``)            rate cap
-=========================  ==============================================  ==============
-``esc/<n>/telemetry``      :meth:`EscSnapshot.telemetry_dict` of motor n   ``telemetry_hz``
-``esc/<n>/info``           :meth:`EscSnapshot.info_dict` of motor n        ``info_hz``
-``esc/status``             every ESC: count, online, escs[]                ``status_hz``
-``bridge/health``          ``TelemetrySources.health()``                   ``health_hz``
-``actuators/input``        ``TelemetrySources.actuators_input()``          ``actuators_hz``
-``actuators/output``       ``TelemetrySources.actuators_output()``         ``actuators_hz``
-=========================  ==============================================  ==============
+=========================  ===========================================  ==============
+key                        payload (JSON, ``application/json``)         rate cap
+=========================  ===========================================  ==============
+``esc/<n>/telemetry``      :class:`~.payload.EscTelemetryPayload`       ``telemetry_hz``
+``esc/<n>/info``           :class:`~.payload.EscInfoPayload`            ``info_hz``
+``esc/status``             :class:`~.payload.EscStatusPayload`          ``status_hz``
+``bridge/health``          ``TelemetrySources.health()``                ``health_hz``
+``actuators/input``        ``TelemetrySources.actuators_input()``       ``actuators_hz``
+``actuators/output``       ``TelemetrySources.actuators_output()``      ``actuators_hz``
+=========================  ===========================================  ==============
 
-Every payload carries ``time_unix_ms`` (wall clock) unless its source already put one in. A
+Every payload is encoded by its record in :mod:`bridge.telemetry.payload`, and carries
+``time_unix_ms`` (wall clock, when published) unless its source already put one in. A
 source that returns ``None`` (nothing yet) is skipped. A queryable on ``<prefix>/**`` answers
 with the latest published value of each matching key, and a liveliness token on
 ``<prefix>/alive`` exists while the bridge has a session.
@@ -43,7 +44,16 @@ import zenoh
 
 from bridge.config import ZenohConfig
 from bridge.errors import ConfigError
-from bridge.telemetry.state import EscSnapshot, EscTable
+from bridge.telemetry.payload import (
+    ActuatorsInputPayload,
+    ActuatorsOutputPayload,
+    EscInfoPayload,
+    EscStatusPayload,
+    EscTelemetryPayload,
+    HealthPayload,
+    Payload,
+)
+from bridge.telemetry.state import EscTable
 
 log = logging.getLogger(__name__)
 
@@ -71,12 +81,12 @@ _HOSTNAME = re.compile(rf"{_LABEL}(\.{_LABEL})*\.?")  # a DNS name
 @dataclass
 class TelemetrySources:
     """Where the published data comes from. The callables are cheap and thread-safe; each
-    returns the latest JSON-able dict, or ``None`` when there is nothing yet."""
+    returns the latest record, or ``None`` when there is nothing yet."""
 
     escs: EscTable
-    health: Callable[[], dict[str, Any]]
-    actuators_input: Callable[[], dict[str, Any] | None]
-    actuators_output: Callable[[], dict[str, Any] | None]
+    health: Callable[[], HealthPayload]
+    actuators_input: Callable[[], ActuatorsInputPayload | None]
+    actuators_output: Callable[[], ActuatorsOutputPayload | None]
 
 
 @dataclass
@@ -91,7 +101,7 @@ class ZenohStats:
     """Samples that were due while no session was open (while an attempt to open one hangs,
     nothing is due: the thread waits in it)."""
     errors: int = 0
-    """Failed puts and replies, payloads that are not JSON, sources that raised."""
+    """Failed puts and replies, records that cannot be JSON (NaN), sources that raised."""
     reconnects: int = 0
     """Times a router or peer was connected again after all were gone (the link dropped, or
     the session was lost and reopened)."""
@@ -473,19 +483,19 @@ class ZenohOut:
             snapshots = self._sources.escs.snapshot(time.monotonic_ns())
             if due_telemetry:
                 for key, snap in zip(self._telemetry_keys, snapshots, strict=True):
-                    self._publish(key, snap.telemetry_dict())
+                    self._publish(key, EscTelemetryPayload.of(snap))
             if due_info:
                 for key, snap in zip(self._info_keys, snapshots, strict=True):
-                    self._publish(key, snap.info_dict())
+                    self._publish(key, EscInfoPayload.of(snap))
             if due_status:
-                self._publish(self._status_key, _status(snapshots))
+                self._publish(self._status_key, EscStatusPayload.of(snapshots, _now_ms()))
         if health.due(now):
             self._publish(self._health_key, self._call(self._sources.health))
         if actuators.due(now):
             self._publish(self._input_key, self._call(self._sources.actuators_input))
             self._publish(self._output_key, self._call(self._sources.actuators_output))
 
-    def _call(self, source: Callable[[], dict[str, Any] | None]) -> dict[str, Any] | None:
+    def _call(self, source: Callable[[], Payload | None]) -> Payload | None:
         try:
             return source()
         except Exception:  # a faulty source must not stop the others
@@ -494,13 +504,13 @@ class ZenohOut:
                 log.exception("Zenoh: telemetry source %r failed", source)
             return None
 
-    def _publish(self, key: str, value: dict[str, Any] | None) -> None:
+    def _publish(self, key: str, value: Payload | None) -> None:
         if value is None:
             return
-        if "time_unix_ms" not in value:
-            value = {"time_unix_ms": time.time_ns() // 1_000_000, **value}
+        if value.time_unix_ms is None:
+            value = value.stamped(_now_ms())
         try:
-            payload = json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+            payload = value.encode()
         except (TypeError, ValueError) as exc:
             self._count(errors=1)
             if self._error_log.ready():
@@ -539,10 +549,5 @@ class ZenohOut:
                         log.warning("Zenoh: replying to %s failed: %s", selector, exc)
 
 
-def _status(snapshots: tuple[EscSnapshot, ...]) -> dict[str, Any]:
-    return {
-        "time_unix_ms": time.time_ns() // 1_000_000,
-        "count": len(snapshots),
-        "online": sum(1 for snap in snapshots if snap.online),
-        "escs": [snap.telemetry_dict() for snap in snapshots],
-    }
+def _now_ms() -> int:
+    return time.time_ns() // 1_000_000

@@ -19,11 +19,11 @@ from conftest import ESC_BRIDGE
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
-from bridge.can_in import CanReader
 from bridge.config import CanConfig
 from bridge.errors import ConfigError
 from bridge.escs import ckesc, registry
-from bridge.record import Recording, candump_line
+from bridge.telemetry.reader import CanReader
+from bridge.telemetry.recorder import Recording, candump_line
 from bridge.telemetry.state import EscTable
 
 LINE = re.compile(r"^\((\d+\.\d{6})\) (\S+) ([0-9A-F]{3}|[0-9A-F]{8})#([0-9A-F]*)$")
@@ -266,7 +266,7 @@ def test_a_forgotten_recording_warns_and_still_writes(
     recording = Recording.open(tmp_path)
     path = recording.log_path
     recording.can(can.Message(timestamp=5.0, arbitration_id=0x1F4E5201, data=b"\x02"))
-    with caplog.at_level(logging.WARNING, logger="bridge.record"):
+    with caplog.at_level(logging.WARNING, logger="bridge.telemetry.recorder"):
         del recording
         gc.collect()
     assert "was not closed" in caplog.text

@@ -34,6 +34,14 @@ from conftest import (
 from bridge.escs import ckesc, ft
 from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.mavlink import load_dialect
+from bridge.telemetry.payload import (
+    ActuatorsInputPayload,
+    ActuatorsOutputPayload,
+    EscInfoPayload,
+    EscStatusPayload,
+    EscTelemetryPayload,
+    HealthPayload,
+)
 
 S = ckesc.Msg1Status
 # The test's autopilot link stands in for a ground station here: it gets every family (the
@@ -414,6 +422,18 @@ def test_zenoh_subscriber_and_queryable(
             outputs = got["esc-bridge/testcopter/actuators/output"]
             assert [c["value"] for c in outputs["commands"]] == [1000.0] * 4  # 1500 µs
             assert all("json" in e for e in encodings)
+            # Every key decodes with its record, as a reader on the network decodes it.
+            for suffix, record in (
+                ("esc/3/telemetry", EscTelemetryPayload),
+                ("esc/3/info", EscInfoPayload),
+                ("esc/status", EscStatusPayload),
+                ("bridge/health", HealthPayload),
+                ("actuators/input", ActuatorsInputPayload),
+                ("actuators/output", ActuatorsOutputPayload),
+            ):
+                value = got[f"esc-bridge/testcopter/{suffix}"]
+                assert json.loads(record.decode(json.dumps(value).encode()).encode()) == value
+            assert HealthPayload.decode(json.dumps(health).encode()).can_rx.frames > 0
             replies = list(session.get("esc-bridge/testcopter/esc/*/telemetry", timeout=5.0))
             samples = [r.ok for r in replies if r.ok is not None]
             answered = {str(s.key_expr): json.loads(s.payload.to_bytes()) for s in samples}

@@ -23,12 +23,19 @@ from typing import Any, Literal
 import pytest
 import zenoh
 from conftest import free_port
+from payloads import ACTUATORS_INPUT, ACTUATORS_OUTPUT, HEALTH
 
 from bridge.config import ZenohConfig
 from bridge.errors import ConfigError
 from bridge.escs import ckesc, ft, registry
+from bridge.telemetry.payload import (
+    ActuatorsInputPayload,
+    ActuatorsOutputPayload,
+    EscTelemetryPayload,
+    HealthPayload,
+)
 from bridge.telemetry.state import EscTable
-from bridge.zenoh_out import TelemetrySources, ZenohOut, session_config
+from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut, session_config
 
 TIMEOUT_S = 5.0
 JSON = "application/json"
@@ -106,10 +113,10 @@ class Collector:
 class Mutable:
     """A source whose value the test changes while the bridge reads it."""
 
-    def __init__(self, value: dict[str, Any] | None) -> None:
+    def __init__(self, value: ActuatorsOutputPayload | None) -> None:
         self.value = value
 
-    def __call__(self) -> dict[str, Any] | None:
+    def __call__(self) -> ActuatorsOutputPayload | None:
         return self.value
 
 
@@ -157,15 +164,15 @@ def table() -> EscTable:
 
 def make_sources(
     escs: EscTable,
-    health: Callable[[], dict[str, Any]] | None = None,
-    actuators_input: Callable[[], dict[str, Any] | None] | None = None,
-    actuators_output: Callable[[], dict[str, Any] | None] | None = None,
+    health: Callable[[], HealthPayload] | None = None,
+    actuators_input: Callable[[], ActuatorsInputPayload | None] | None = None,
+    actuators_output: Callable[[], ActuatorsOutputPayload | None] | None = None,
 ) -> TelemetrySources:
     return TelemetrySources(
         escs=escs,
-        health=health or (lambda: {"uptime_s": 12.5, "can": {"frames": 3}}),
-        actuators_input=actuators_input or (lambda: {"values": [0.25, 0.5]}),
-        actuators_output=actuators_output or (lambda: {"throttle": [1000, 1100]}),
+        health=health or (lambda: replace(HEALTH, time_unix_ms=None)),
+        actuators_input=actuators_input or (lambda: ACTUATORS_INPUT),
+        actuators_output=actuators_output or (lambda: ACTUATORS_OUTPUT),
     )
 
 
@@ -222,7 +229,7 @@ def test_every_key_carries_json_with_the_tables_values(
     bridge: Callable[..., Bridge], table: EscTable
 ) -> None:
     output = Mutable(None)
-    inputs = {"time_unix_ms": 123, "values": [0.25, 0.5]}  # has its own time: kept
+    inputs = ACTUATORS_INPUT  # has its own time: kept
     b = bridge(
         make_sources(table, actuators_input=lambda: inputs, actuators_output=output),
         health_hz=20.0,
@@ -234,9 +241,9 @@ def test_every_key_carries_json_with_the_tables_values(
 
     t1 = collector.wait_for(b.key("esc/1/telemetry")).value
     assert near_now(t1.pop("time_unix_ms"))
-    expected = table.snapshot(time.monotonic_ns())[0].telemetry_dict()
+    expected = json.loads(EscTelemetryPayload.of(table.snapshot(time.monotonic_ns())[0]).encode())
     assert t1["age_ms"] >= 0
-    assert {**t1, "age_ms": None} == {**expected, "age_ms": None}  # telemetry_dict() as is
+    assert {**t1, "age_ms": None} == {**expected, "age_ms": None}  # the snapshot's record as is
     assert (t1["motor"], t1["node_id"], t1["online"], t1["status"]) == (1, 5, True, RUNNING)
     assert (t1["rpm"], t1["throttle"], t1["failure_flags"]) == (1234, 0.5, 0)
     assert t1["voltage_v"] == pytest.approx(24.5)
@@ -269,18 +276,18 @@ def test_every_key_carries_json_with_the_tables_values(
     assert [e["rpm"] for e in status["escs"]] == [1234, 1000, None]
 
     health = collector.wait_for(b.key("bridge/health")).value
-    assert near_now(health.pop("time_unix_ms"))
-    assert health == {"uptime_s": 12.5, "can": {"frames": 3}}
+    assert near_now(health["time_unix_ms"])  # stamped when published
+    assert health == json.loads(HEALTH.stamped(health["time_unix_ms"]).encode())
 
-    assert collector.wait_for(b.key("actuators/input")).value == inputs
+    assert collector.wait_for(b.key("actuators/input")).value == json.loads(inputs.encode())
 
     # actuators/output had nothing yet: skipped, while actuators/input came at the same ticks.
     since = time.monotonic()
     collector.wait_for(b.key("actuators/input"), since=since)
     collector.wait_for(b.key("actuators/input"), since=time.monotonic())
     assert collector.samples(b.key("actuators/output")) == []
-    output.value = {"throttle": [1000, 1100]}
-    assert collector.wait_for(b.key("actuators/output")).value["throttle"] == [1000, 1100]
+    output.value = ACTUATORS_OUTPUT
+    assert collector.wait_for(b.key("actuators/output")).value["commands"][0]["value"] == 1000
 
     # A fresh frame shows in the next sample.
     ingest(table, ckesc_frame(ckesc.Msg1(speed_rpm=2000, throttle=1500, status=RUNNING), 4))
@@ -354,7 +361,7 @@ def test_queryable_answers_the_latest_values(
     assert everything[b.key("esc/1/telemetry")]["rpm"] == 1234
     assert everything[b.key("esc/status")]["count"] == 3
     assert everything[b.key("esc/2/info")]["frames"] == 3
-    assert everything[b.key("actuators/output")]["throttle"] == [1000, 1100]
+    assert everything[b.key("actuators/output")]["commands"][0]["value"] == 1000
 
     assert set(query(b.key("esc/*/info"))) == {b.key(f"esc/{n}/info") for n in (1, 2, 3)}
 
@@ -449,7 +456,7 @@ def test_a_subscriber_in_another_process_gets_the_json(
 def test_unreachable_zenoh_never_holds_up_the_bridge(
     table: EscTable, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.DEBUG, logger="bridge.zenoh_out")
+    caplog.set_level(logging.DEBUG, logger="bridge.telemetry.zenoh_out")
     closed_port = free_port(socket.SOCK_STREAM)  # nothing listens there
     config = ZenohConfig(
         mode="client",
@@ -515,7 +522,7 @@ def test_close_is_prompt_when_zenoh_hangs(
 def test_comes_up_when_the_router_appears_and_counts_reconnects(
     table: EscTable, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="bridge.zenoh_out")
+    caplog.set_level(logging.INFO, logger="bridge.telemetry.zenoh_out")
     port = free_port(socket.SOCK_STREAM)
     endpoint = f"tcp/127.0.0.1:{port}"
     config = ZenohConfig(
@@ -550,11 +557,12 @@ def test_comes_up_when_the_router_appears_and_counts_reconnects(
 def test_faulty_sources_are_counted_and_the_rest_still_flows(
     bridge: Callable[..., Bridge], table: EscTable
 ) -> None:
-    def broken() -> dict[str, Any]:
+    def broken() -> ActuatorsInputPayload:
         raise RuntimeError("actuator source broke")
 
+    not_json = replace(HEALTH, time_unix_ms=None, input=replace(HEALTH.input, age_ms=math.nan))
     b = bridge(  # a NaN is not JSON; input is asked for before output at the same ticks
-        make_sources(table, health=lambda: {"x": math.nan}, actuators_input=broken),
+        make_sources(table, health=lambda: not_json, actuators_input=broken),
         health_hz=20.0,
     )
     collector = Collector(b.connect(), b.key("**"))

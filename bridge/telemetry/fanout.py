@@ -15,23 +15,28 @@ from typing import Any
 import can
 from can.typechecking import CanFilter
 
-from bridge.can_in import CanReader, Recorder, reader_filters
 from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
 from bridge.escs import registry
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
+from bridge.telemetry.payload import (
+    ActuatorsInputPayload,
+    ActuatorsOutputPayload,
+    CanRxHealth,
+    HealthPayload,
+    ZenohHealth,
+)
+from bridge.telemetry.reader import CanReader, Recorder, reader_filters
 from bridge.telemetry.state import EscTable
-from bridge.zenoh_out import TelemetrySources, ZenohOut
+from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut
 
 log = logging.getLogger(__name__)
 
 # The reader's socket buffer: ~0.8 s of a saturated 1 Mbit/s bus at ~800 B per queued frame (the
 # kernel caps it at net.core.rmem_max; raise that to use all of it).
 RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
-
-JsonSource = Callable[[], dict[str, Any] | None]
 
 
 class Fanout:
@@ -43,20 +48,20 @@ class Fanout:
         table: EscTable,
         link: MavlinkLink,
         *,
-        health: Callable[[], dict[str, Any]],
-        actuators_input: JsonSource,
-        actuators_output: JsonSource,
+        health: Callable[[], HealthPayload],
+        actuators_input: Callable[[], ActuatorsInputPayload | None],
+        actuators_output: Callable[[], ActuatorsOutputPayload | None],
         shared_bus: Callable[[], can.BusABC | None] | None = None,
         recorder: Recorder | None = None,
         read_back_commands: bool = True,
     ) -> None:
         """``shared_bus``: read the output loop's handle instead of opening one of our own.
 
-        Our own handle receives only our ESCs' telemetry (:func:`~bridge.can_in.reader_filters`),
-        unless ``recorder`` is given (the recording wants every frame); with
-        ``read_back_commands`` (the default) it receives the bridge's own commands too, which the
-        ESC state reads back for the actuators/output key. A shared handle belongs to the
-        output loop and is read as it was opened.
+        Our own handle receives only our ESCs' telemetry
+        (:func:`~bridge.telemetry.reader.reader_filters`), unless ``recorder`` is given (the
+        recording wants every frame); with ``read_back_commands`` (the default) it receives the
+        bridge's own commands too, which the ESC state reads back for the actuators/output key. A
+        shared handle belongs to the output loop and is read as it was opened.
         """
         self._config = config
         self._family = registry.family(config.output.protocol)
@@ -162,24 +167,23 @@ class Fanout:
             self._own_bus.shutdown()
             self._own_bus = None
 
-    def counters(self) -> dict[str, Any]:
-        """The reader's and Zenoh's counters, for the bridge's health."""
+    def can_rx(self) -> CanRxHealth:
+        """The reader's counters, for the bridge's health."""
         reader = self.reader.stats if self.reader is not None else None
-        result: dict[str, Any] = {
-            "can_rx": {
-                "frames": reader.frames if reader else 0,
-                "telemetry": reader.telemetry if reader else 0,
-                "malformed": reader.malformed if reader else 0,
-                "read_errors": reader.read_errors if reader else 0,
-                "kernel_drops": reader.kernel_drops if reader else None,
-                "unknown_esc_frames": self.table.unknown_frames,
-            }
-        }
-        if self.zenoh is not None:
-            stats = self.zenoh.stats
-            result["zenoh"] = {
-                "session_up": stats.session_up,
-                "published": stats.published,
-                "dropped": stats.dropped,
-            }
-        return result
+        return CanRxHealth(
+            frames=reader.frames if reader else 0,
+            telemetry=reader.telemetry if reader else 0,
+            malformed=reader.malformed if reader else 0,
+            read_errors=reader.read_errors if reader else 0,
+            kernel_drops=reader.kernel_drops if reader else None,
+            unknown_esc_frames=self.table.unknown_frames,
+        )
+
+    def zenoh_health(self) -> ZenohHealth | None:
+        """Zenoh's counters, for the bridge's health; None when Zenoh is off."""
+        if self.zenoh is None:
+            return None
+        stats = self.zenoh.stats
+        return ZenohHealth(
+            session_up=stats.session_up, published=stats.published, dropped=stats.dropped
+        )

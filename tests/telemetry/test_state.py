@@ -7,7 +7,6 @@ import time
 import can
 import pytest
 
-from bridge.can_in import CanReader
 from bridge.escs import ckesc, ft, registry
 from bridge.escs.family import (
     FAILURE_GENERIC,
@@ -15,6 +14,7 @@ from bridge.escs.family import (
     FAILURE_OVER_RPM,
     FAILURE_OVER_TEMPERATURE,
 )
+from bridge.telemetry.reader import CanReader
 from bridge.telemetry.state import EscTable, TelemetryLimits
 
 S = ckesc.Msg1Status
