@@ -52,7 +52,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    from bridge.cli import decode, demo, esc, monitor, plot, run, sim  # after main's first line
+    from bridge.cli import (
+        decode,
+        demo,
+        dialect,
+        esc,
+        monitor,
+        plot,
+        run,
+        sim,
+    )  # after main's 1st line
 
     decode.add_parser(commands)
     run.add_parser(commands)
@@ -61,4 +70,5 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_parser(commands)
     esc.add_parser(commands)
     plot.add_parser(commands)
+    dialect.add_parser(commands)
     return parser
