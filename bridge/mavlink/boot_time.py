@@ -5,8 +5,10 @@ boot (PX4 sends that; mavros adds its timesync offset to it, so a Unix-epoch sta
 in the future). The bridge is one more component of the vehicle, so it stamps its ESC reports
 on the autopilot's boot clock once it knows it.
 
-The autopilot tells its boot time in SYSTEM_TIME (``time_boot_ms``; ArduPilot and PX4 send it
-unasked) and in the TIMESYNC requests it sends (``tc1`` 0, ``ts1`` its boot time in ns). Each
+The autopilot tells its boot time in SYSTEM_TIME (``time_boot_ms``) and in the TIMESYNC
+requests it sends (``tc1`` 0, ``ts1`` its boot time in ns). Seen on the bridge's link: PX4 1.16
+SITL sends SYSTEM_TIME at 1 Hz and TIMESYNC at about 10 Hz unasked; ArduCopter SITL a TIMESYNC
+every 10 s and SYSTEM_TIME only in a stream someone asked for. Each
 sample goes through :class:`~bridge.mavlink.clock.AutopilotClock`, which keeps the offset of the
 least transport delay and re-seeds after a reboot, so the estimate is the one the control loop
 uses for motor outputs. TIMESYNC answers (``tc1`` not 0) carry another system's clock and are
