@@ -52,16 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    from bridge.cli import (
-        decode,
-        demo,
-        dialect,
-        esc,
-        monitor,
-        plot,
-        run,
-        sim,
-    )  # after main's 1st line
+    from bridge.cli import decode, demo, esc, monitor, plot, run, sim  # after main's first line
 
     decode.add_parser(commands)
     run.add_parser(commands)
@@ -70,5 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_parser(commands)
     esc.add_parser(commands)
     plot.add_parser(commands)
+    from bridge.cli import dialect
+
     dialect.add_parser(commands)
     return parser
