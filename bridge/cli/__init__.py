@@ -61,4 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_parser(commands)
     esc.add_parser(commands)
     plot.add_parser(commands)
+    from bridge.cli import dialect
+
+    dialect.add_parser(commands)
     return parser

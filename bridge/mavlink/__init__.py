@@ -20,7 +20,8 @@ them as ``UNKNOWN_290``/``UNKNOWN_291``. ``esc_bridge.xml`` (package data) adds 
 upstream wire format; :func:`load_dialect` turns it into a Python module with pymavlink's mavgen
 on first use and caches the result outside the source tree (see :mod:`bridge.mavlink._dialect`
 for the cache layout). Use the returned module wherever ``pymavlink.dialects.v20.ardupilotmega``
-would be used.
+would be used. For stock pymavlink, MAVProxy and mavlogdump, :func:`install_dialect` (``esc-bridge
+mavlink-dialect``) puts the generated module among pymavlink's own as ``esc_bridge``.
 """
 
 from bridge.mavlink._dialect import (
@@ -30,8 +31,10 @@ from bridge.mavlink._dialect import (
     cache_root,
     dialect_key,
     generate_dialect,
+    install_dialect,
     load_dialect,
     stock_ardupilotmega_xml,
+    stock_dialects_dir,
 )
 
 __all__ = [
@@ -41,6 +44,8 @@ __all__ = [
     "cache_root",
     "dialect_key",
     "generate_dialect",
+    "install_dialect",
     "load_dialect",
     "stock_ardupilotmega_xml",
+    "stock_dialects_dir",
 ]

@@ -49,8 +49,10 @@ __all__ = [
     "cache_root",
     "dialect_key",
     "generate_dialect",
+    "install_dialect",
     "load_dialect",
     "stock_ardupilotmega_xml",
+    "stock_dialects_dir",
 ]
 
 log = logging.getLogger(__name__)
@@ -66,6 +68,9 @@ _BASE_INCLUDE: Final = "ardupilotmega.xml"
 
 _MODULE_STEM: Final = "esc_bridge"
 """mavgen names the dialect (its ``DIALECT`` constant) after the output file's stem."""
+
+INSTALLED_NAME: Final = _MODULE_STEM
+"""The dialect's name where stock pymavlink finds it: ``--dialect esc_bridge``."""
 
 _LAYOUT_REVISION: Final = b"1"
 """Part of the cache key: bump it when this module changes what it feeds mavgen."""
@@ -371,3 +376,52 @@ def _import_generated(name: str, path: Path) -> ModuleType:
         raise DialectError(
             f"cannot import the generated MAVLink dialect {path}: {err}", path
         ) from err
+
+
+def stock_dialects_dir() -> Path:
+    """The installed pymavlink's ``dialects/v20`` directory, where ``mavutil.set_dialect``,
+    MAVProxy's and mavlogdump's ``--dialect`` and ``MAVLINK_DIALECT`` look (MAVLink 2)."""
+    return stock_ardupilotmega_xml().parent
+
+
+def install_dialect(into: Path | None = None) -> Path:
+    """Put the dialect (generated as for :func:`load_dialect`) where stock pymavlink finds it:
+    ``esc_bridge.py`` in ``into``, by default :func:`stock_dialects_dir`. Returns the file.
+
+    Stock pymavlink, MAVProxy and mavlogdump then decode ESC_INFO/ESC_STATUS with
+    ``--dialect esc_bridge`` or ``MAVLINK_DIALECT=esc_bridge`` (with ``MAVLINK20=1``, which
+    MAVProxy and mavlogdump set themselves). A reinstalled or upgraded pymavlink loses it.
+
+    Raises:
+        DialectError: the dialect could not be generated, or ``into`` is no directory or
+            cannot be written (the message names it).
+    """
+    target_dir = into if into is not None else stock_dialects_dir()
+    if not (target_dir / "__init__.py").is_file():
+        raise DialectError(
+            f"{target_dir} is not a pymavlink dialects directory (no __init__.py there): "
+            "give a pymavlink installation's pymavlink/dialects/v20",
+            target_dir,
+        )
+    generated = Path(str(load_dialect().__file__))
+    dest = target_dir / f"{INSTALLED_NAME}.py"
+
+    def failure(err: OSError) -> DialectError:
+        return DialectError(f"cannot install the MAVLink dialect into {dest}: {err}", dest)
+
+    try:
+        content = generated.read_bytes()
+        fd, part = tempfile.mkstemp(dir=target_dir, prefix=f".{INSTALLED_NAME}-", suffix=".tmp")
+    except OSError as err:
+        raise failure(err) from err
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(content)
+        os.chmod(part, 0o644)  # readable by every user of a system-wide pymavlink
+        os.replace(part, dest)  # a reader sees the old file or the whole new one
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            os.unlink(part)
+        raise failure(err) from err
+    log.info("installed MAVLink dialect %s", dest)
+    return dest

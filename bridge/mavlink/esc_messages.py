@@ -13,12 +13,16 @@ Encoding choices the MAVLink definitions leave open (README, "ESC telemetry over
   consumed charge and frame count are state, not measurements, and are still sent.
 * Batches cover four ESCs in motor order; ``index`` is the first ESC's 0-based position. The
   last batch pads the missing ESCs with zeros (INT16_MAX temperature); ESC_INFO ``count`` says
-  how many ESCs there are. ESC_STATUS and ESC_INFO cover up to 255 ESCs (``index`` and
-  ``count`` are uint8), ESC_TELEMETRY_x_TO_y the first 32.
-* ``time_usec`` is wall time, µs since the Unix epoch (published data uses wall time).
-* ESC_INFO ``counter`` counts ESC_INFO rounds (all batches, once each) sent since start,
-  modulo 65536, the first round carrying 1: every batch's counter goes up by one each time
-  that batch is sent, periodically or on request.
+  how many ESCs there are. ESC_STATUS and ESC_INFO cover the first 64 ESCs (``index`` 0..60, as
+  the definition allows), ESC_TELEMETRY_x_TO_y the first 32.
+* ESC_INFO ``info`` is the whole vehicle's online bits, the same in every batch: bit i set while
+  motor i (0-based) is online, as PX4 fills it (``esc_online_flags``) and QGroundControl's ESC
+  page reads it. It is a uint8, so ESCs from the ninth on have no bit there.
+* ``time_usec`` is the autopilot's time since boot (µs) when the sender knows it (its
+  SYSTEM_TIME or TIMESYNC), as PX4 stamps these messages and mavros expects; before that, µs
+  since the Unix epoch (the definition allows both; a receiver tells them apart by size).
+* ESC_INFO ``counter`` is "telemetry packets received": every frame received from the ESCs,
+  all of them together, modulo 65536. It moves only while ESC telemetry arrives.
 * A real ESC_INFO temperature is clamped to -32768..32766 cdegC, so it never reads as the
   INT16_MAX "unknown".
 """
@@ -37,6 +41,7 @@ __all__ = [
     "ESCS_PER_MESSAGE",
     "ESC_TELEMETRY_MAX_ESCS",
     "FAMILIES",
+    "INFO_BITS",
     "MAX_ESCS",
     "OTHER_AUTOPILOT_SET",
     "TELEMETRY_GROUPS",
@@ -48,6 +53,8 @@ __all__ = [
     "esc_status_messages",
     "esc_telemetry_messages",
     "messages_per_round",
+    "online_bits",
+    "packets_received",
     "rates_text",
 ]
 
@@ -58,8 +65,10 @@ FAMILIES: Final[tuple[Family, ...]] = ("esc_status", "esc_info", "esc_telemetry"
 ESCS_PER_MESSAGE: Final = 4
 ESC_TELEMETRY_MAX_ESCS: Final = 32
 """ArduPilot defines ESC_TELEMETRY_1_TO_4 .. ESC_TELEMETRY_29_TO_32 only."""
-MAX_ESCS: Final = 255
-"""ESC_STATUS/ESC_INFO ``index`` and ESC_INFO ``count`` are uint8."""
+MAX_ESCS: Final = 64
+"""ESC_STATUS/ESC_INFO ``index`` runs 0..60 by the definition: 16 batches of four."""
+INFO_BITS: Final = 8
+"""ESC_INFO ``info`` is a uint8: the online bits of motors 0..7."""
 
 ESC_CONNECTION_TYPE_CAN: Final = 4
 """ESC_CONNECTION_TYPE_CAN: every ESC the bridge drives is on CAN."""
@@ -117,8 +126,9 @@ def esc_status_messages(mav: Any, snapshots: Sequence[EscSnapshot], time_usec: i
     """ESC_STATUS messages (id 291) for every batch of four ESCs, in motor order.
 
     ``mav`` is the dialect's MAVLink object (``MavlinkLink.mav``); ``time_usec`` is when the
-    snapshots were taken (wall µs). Per ESC: ``rpm`` signed mechanical rpm (int32), ``voltage``
-    in V and ``current`` in A (float); 0 when unknown or the ESC is offline.
+    snapshots were taken (the autopilot's boot clock or the Unix epoch: the module docstring).
+    Per ESC: ``rpm`` signed mechanical rpm (int32), ``voltage`` in V and ``current`` in A
+    (float); 0 when unknown or the ESC is offline.
     """
     messages = []
     for batch_no, batch in enumerate(_batches(snapshots, MAX_ESCS)):
@@ -143,20 +153,30 @@ def _temperature_cdeg(esc: EscSnapshot | None) -> int:
     return _clamp_int(temp_c * 100.0, _INT16_MIN, INT16_MAX - 1)
 
 
-def esc_info_messages(
-    mav: Any, snapshots: Sequence[EscSnapshot], time_usec: int, counter: int
-) -> list[Any]:
+def online_bits(snapshots: Sequence[EscSnapshot]) -> int:
+    """ESC_INFO ``info``: bit i set while motor i (0-based; the first :data:`INFO_BITS`) is
+    online."""
+    return sum(1 << i for i, esc in enumerate(snapshots[:INFO_BITS]) if esc.online)
+
+
+def packets_received(snapshots: Sequence[EscSnapshot]) -> int:
+    """ESC_INFO ``counter``: telemetry frames received from all ESCs together, modulo 65536."""
+    return sum(esc.frames for esc in snapshots) & _UINT16_MAX
+
+
+def esc_info_messages(mav: Any, snapshots: Sequence[EscSnapshot], time_usec: int) -> list[Any]:
     """ESC_INFO messages (id 290) for every batch of four ESCs, in motor order.
 
-    ``counter`` goes into every batch (kept to uint16). Per batch: ``count`` = number of ESCs,
-    ``connection_type`` CAN, ``info`` bit i set while ESC ``index + i`` is online. Per ESC:
-    ``failure_flags`` (ESC_FAILURE_FLAGS), ``error_count`` (CRC/format errors) and
-    ``temperature`` in cdegC (INT16_MAX when unknown or offline).
+    Every batch carries the vehicle's ``count`` (number of ESCs), ``counter``
+    (:func:`packets_received`), ``connection_type`` CAN and ``info`` (:func:`online_bits`, bit i
+    = motor i). Per ESC: ``failure_flags`` (ESC_FAILURE_FLAGS), ``error_count`` (CRC/format
+    errors) and ``temperature`` in cdegC (INT16_MAX when unknown or offline).
     """
     count = min(len(snapshots), MAX_ESCS)
+    online = online_bits(snapshots)
+    counter = packets_received(snapshots)
     messages = []
     for batch_no, batch in enumerate(_batches(snapshots, MAX_ESCS)):
-        online = sum(1 << i for i, esc in enumerate(batch) if esc is not None and esc.online)
         failure_flags = [
             0 if esc is None else _clamp_int(esc.failure_flags, 0, _UINT16_MAX) for esc in batch
         ]
@@ -168,7 +188,7 @@ def esc_info_messages(
             mav.esc_info_encode(
                 batch_no * ESCS_PER_MESSAGE,
                 time_usec,
-                counter & _UINT16_MAX,
+                counter,
                 count,
                 ESC_CONNECTION_TYPE_CAN,
                 online,

@@ -9,9 +9,11 @@ to the autopilot plus one per ``[mavlink] outputs`` entry, and runs named daemon
   message (:mod:`bridge.mavlink.actuators`) into an ``INPUT_VECTOR_LEN``-vector (``ch1..ch32,
   roll, pitch, yaw, thrust``, the order of ``bridge.mixing.definition.INPUT_NAMES``; NaN =
   absent) and hands it, with the arming state from the autopilot's HEARTBEAT, to an
-  :class:`InputSink`. On every connection it passes COMMAND_LONGs addressed to the bridge to
-  the command handlers (:mod:`bridge.mavlink.commands`) and answers with COMMAND_ACK. When a
-  TCP or serial connection drops it reopens it with jittered, capped exponential backoff
+  :class:`InputSink`, and reads its boot clock from its SYSTEM_TIME and TIMESYNC
+  (:mod:`bridge.mavlink.boot_time`, the outgoing ESC reports' stamps). On every connection it
+  passes COMMAND_LONGs addressed to the bridge to the command handlers
+  (:mod:`bridge.mavlink.commands`) and answers with COMMAND_ACK. When a TCP or serial
+  connection drops it reopens it with jittered, capped exponential backoff
   (:mod:`bridge.mavlink.connection`).
 * one writer per extra output: :meth:`MavlinkLink.send` only queues frames for an output, so a
   congested or dead output (a wedged UART, a stalled TCP client) delays nobody but itself.
@@ -68,6 +70,7 @@ from bridge.config import MavlinkConfig
 from bridge.errors import LinkError
 from bridge.mavlink import load_dialect
 from bridge.mavlink.actuators import decoder_for
+from bridge.mavlink.boot_time import AutopilotBootTime
 from bridge.mavlink.commands import CommandDispatcher, CommandHandler
 from bridge.mavlink.connection import POLL_S, Connection, open_pymavlink, wait_readable
 from bridge.mavlink.endpoints import Endpoint, check_endpoints
@@ -189,6 +192,7 @@ class MavlinkLink:
         self._output_name = self._decoder.name
         self._armed_flag: int = self._dialect.MAV_MODE_FLAG_SAFETY_ARMED
         self._foreign_seen: set[tuple[int, int]] = set()
+        self._boot_time = AutopilotBootTime()  # written by the autopilot's reader thread
         self._heartbeat = Heartbeat(
             config,
             self._mav,
@@ -217,6 +221,11 @@ class MavlinkLink:
         """The obeyed autopilot's flight stack (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4) from its
         latest HEARTBEAT; None before the first."""
         return self._heartbeat.autopilot_type
+
+    def autopilot_boot_usec(self, now_ns: int) -> int | None:
+        """The obeyed autopilot's µs since boot at the local monotonic ``now_ns``, from its
+        SYSTEM_TIME and TIMESYNC (:mod:`bridge.mavlink.boot_time`); None until it sent one."""
+        return self._boot_time.boot_usec(now_ns)
 
     def add_command_handler(self, handler: CommandHandler) -> None:
         """Pass COMMAND_LONGs addressed to the bridge to ``handler`` too, after the handlers
@@ -519,6 +528,13 @@ class MavlinkLink:
             return  # an output can send commands, never motor outputs or arming
         if kind == "COMMAND_ACK":
             self._heartbeat.on_ack(msg)
+            return
+        if kind in ("SYSTEM_TIME", "TIMESYNC"):
+            if (msg.get_srcSystem(), msg.get_srcComponent()) == self._autopilot:
+                if kind == "SYSTEM_TIME":
+                    self._boot_time.on_system_time(msg.time_boot_ms, now)
+                else:
+                    self._boot_time.on_timesync(msg.tc1, msg.ts1, now)
             return
         msg_id: int = msg.get_msgId()
         is_output = msg_id in self._decoder.msg_ids

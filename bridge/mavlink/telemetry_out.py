@@ -86,6 +86,9 @@ class TelemetryLink(Protocol):
     def autopilot_type(self) -> int | None:
         """MAV_AUTOPILOT from the autopilot's latest HEARTBEAT; None before the first."""
 
+    def autopilot_boot_usec(self, now_ns: int) -> int | None:
+        """The autopilot's µs since boot at the local monotonic ``now_ns``; None while unknown."""
+
     def send(self, msg: Any, to: Collection[str] | None = None) -> None:
         """Send ``msg`` to every connection, or only to those whose URL ``to`` holds."""
 
@@ -153,7 +156,6 @@ class MavlinkTelemetry:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._closed = False
-        self._info_rounds = 0  # owned by the sender thread
         self._logged_autopilot_set: dict[Family, float] | None = None  # sender thread's
 
     def default_rates(self, url: str | None = None) -> dict[Family, float]:
@@ -354,7 +356,7 @@ class MavlinkTelemetry:
         """Send the due families and the requested messages from one snapshot; a family due
         on several connections is encoded and packed once for all of them."""
         snapshots = self._table.snapshot(now_ns)
-        time_usec = time.time_ns() // 1000
+        time_usec = self._time_usec(now_ns)
         for family in FAMILIES:
             urls = [url for url, f in due if f == family]
             if urls:
@@ -366,6 +368,12 @@ class MavlinkTelemetry:
                 messages = [m for m in messages if m.get_msgId() == msg_id]
             self._send(messages, family, [url])
 
+    def _time_usec(self, now_ns: int) -> int:
+        """The stamp of what is sent at ``now_ns``: the autopilot's boot clock when known (as
+        PX4 stamps ESC_STATUS/ESC_INFO and mavros reads them), else µs since the Unix epoch."""
+        boot_usec = self._link.autopilot_boot_usec(now_ns)
+        return time.time_ns() // 1000 if boot_usec is None else boot_usec
+
     def _encode(
         self, family: Family, snapshots: Sequence[EscSnapshot], time_usec: int
     ) -> list[Any]:
@@ -373,8 +381,7 @@ class MavlinkTelemetry:
         if family == "esc_status":
             return esc_status_messages(mav, snapshots, time_usec)
         if family == "esc_info":
-            self._info_rounds += 1
-            return esc_info_messages(mav, snapshots, time_usec, self._info_rounds)
+            return esc_info_messages(mav, snapshots, time_usec)
         return esc_telemetry_messages(mav, snapshots)
 
     def _send(self, messages: list[Any], family: Family, urls: list[str]) -> None:

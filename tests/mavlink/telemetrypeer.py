@@ -104,12 +104,16 @@ class Gcs:
         assert msg is not None, f"no matching {kind} within {timeout_s} s"
         return msg
 
-    def send(self, msg: Any) -> None:
+    def send(self, msg: Any, source: tuple[int, int] | None = None) -> None:
+        """Send ``msg`` to the bridge, from this station's IDs or from ``source``."""
         with self._cond:
             self._cond.wait_for(lambda: self._bridge is not None, TIMEOUT_S)
             assert self._bridge is not None, "the bridge never sent anything"
             address = self._bridge
-        frame = msg.pack(self._packer)
+        packer = self._packer
+        if source is not None:
+            packer = DIALECT.MAVLink(None, srcSystem=source[0], srcComponent=source[1])
+        frame = msg.pack(packer)
         self._packer.seq = (self._packer.seq + 1) % 256
         self.sock.sendto(frame, address)
 
@@ -306,9 +310,11 @@ def check_esc_info(msg: Any, expected: list[Expected], t_us: tuple[int, int]) ->
     assert t_us[0] <= msg.time_usec <= t_us[1]
     assert msg.count == len(expected)
     assert msg.connection_type == DIALECT.ESC_CONNECTION_TYPE_CAN == 4
-    online = [slot(expected, msg.index + j) for j in range(4)]
-    assert msg.info == sum(1 << j for j, esc in enumerate(online) if esc and esc.online)
-    for j, esc in enumerate(online):
+    # The whole vehicle's online bits in every batch, bit i = motor i (QGroundControl's reading).
+    assert msg.info == sum(1 << i for i, esc in enumerate(expected[:8]) if esc.online)
+    assert msg.counter == sum(esc.frames for esc in expected) % 65536  # packets received
+    batch = [slot(expected, msg.index + j) for j in range(4)]
+    for j, esc in enumerate(batch):
         assert msg.failure_flags[j] == (esc.failure_flags if esc else 0), msg.index + j
         assert msg.error_count[j] == (esc.errors if esc else 0), msg.index + j
         temperature = INT16_MAX if esc is None or esc.temp_c is None else round(esc.temp_c * 100)

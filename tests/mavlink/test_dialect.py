@@ -382,3 +382,102 @@ def test_mavgen_failure_names_the_file(tmp_path: Path, monkeypatch: pytest.Monke
     assert caught.value.path == xml
     assert str(xml) in str(caught.value)
     assert [p.name for p in (tmp_path / "cache" / "mavlink").iterdir()] == []
+
+
+# --- stock pymavlink after `esc-bridge mavlink-dialect` -------------------------------------
+
+
+def stock_pymavlink_copy(root: Path) -> Path:
+    """A pymavlink package under ``root`` that is the installed one (every file a symlink to it)
+    except for a dialects/v20 directory of its own: the step may write there without touching
+    this environment. Returns that v20 directory."""
+    real = Path(stock.__file__).resolve().parents[2]  # .../pymavlink
+    copy = root / "pymavlink"
+    copy.mkdir(parents=True)
+    for entry in real.iterdir():
+        if entry.name not in ("dialects", "__pycache__"):
+            (copy / entry.name).symlink_to(entry)
+    (copy / "dialects").mkdir()
+    for entry in (real / "dialects").iterdir():
+        if entry.name not in ("v20", "__pycache__"):
+            (copy / "dialects" / entry.name).symlink_to(entry)
+    v20 = copy / "dialects" / "v20"
+    v20.mkdir()
+    for entry in (real / "dialects" / "v20").iterdir():
+        if entry.name != "__pycache__":
+            (v20 / entry.name).symlink_to(entry)
+    return v20
+
+
+STOCK_READER = """
+import sys
+from pymavlink import mavutil
+log = mavutil.mavlink_connection(sys.argv[1], dialect=sys.argv[2])
+while (msg := log.recv_msg()) is not None:
+    print(msg.get_type(), getattr(msg, "index", ""), getattr(msg, "info", ""),
+          list(getattr(msg, "rpm", [])))
+"""
+
+
+def test_stock_pymavlink_mavproxy_and_mavlogdump_decode_after_the_documented_step(
+    own: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from bridge.cli import main
+
+    v20 = stock_pymavlink_copy(tmp_path / "site")
+    tlog = tmp_path / "flight.tlog"
+    mav = own.MAVLink(None, srcSystem=1, srcComponent=191)
+    frames = [
+        own.MAVLink_esc_info_message(**ESC_INFO_ARGS).pack(mav),
+        own.MAVLink_esc_status_message(**ESC_STATUS_ARGS).pack(mav),
+    ]
+    tlog.write_bytes(
+        b"".join(
+            (1_700_000_000_000_000 + i).to_bytes(8, "big") + bytes(f) for i, f in enumerate(frames)
+        )
+    )
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "site"), MAVLINK20="1")
+    env.pop("MAVLINK_DIALECT", None)
+
+    def read(dialect: str) -> str:
+        done = subprocess.run(
+            [sys.executable, "-c", STOCK_READER, str(tlog), dialect],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=True,
+        )
+        return done.stdout
+
+    assert read("ardupilotmega").split("\n")[:2] == ["UNKNOWN_290   []", "UNKNOWN_291   []"]
+    assert main(["mavlink-dialect", "--into", str(v20)]) == 0
+    out = capsys.readouterr().out
+    assert f"installed the esc_bridge MAVLink dialect: {v20 / 'esc_bridge.py'}" in out
+    assert "--dialect esc_bridge" in out and "MAVLINK_DIALECT=esc_bridge" in out
+    assert read("esc_bridge").split("\n")[:2] == [
+        "ESC_INFO 4 11 []",
+        "ESC_STATUS 0  [12000, -8500, 0, -2147483648]",
+    ]
+    # MAVProxy and mavlogdump load dialects the same way (--dialect): mavlogdump itself here.
+    mavlogdump = Path(sys.executable).with_name("mavlogdump.py")
+    dump = subprocess.run(
+        [
+            sys.executable,
+            str(mavlogdump),
+            "--dialect",
+            "esc_bridge",
+            "--types",
+            "ESC_INFO,ESC_STATUS",
+            str(tlog),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout
+    assert "ESC_INFO {index : 4" in dump and "ESC_STATUS {index : 0" in dump
+    assert "UNKNOWN" not in dump
+    # And the environment this test runs in was not touched.
+    assert not (Path(stock.__file__).parent / "esc_bridge.py").exists()

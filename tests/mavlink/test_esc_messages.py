@@ -7,13 +7,19 @@ outputs) is tested in test_telemetry_out.py.
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import io
 import math
 import time
 from dataclasses import replace
+from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import pytest
 import telemetrypeer
+from pymavlink.generator import mavgen
 from telemetrypeer import (
     DIALECT,
     INT16_MAX,
@@ -110,8 +116,8 @@ def test_esc_info_counts_online_escs_and_keeps_int16_max_for_unknown() -> None:
         snapshot(2, online=False),
         snapshot(3, mos_temp_c=None),
     ]
-    (msg,) = on_wire(esc_info_messages(DIALECT.MAVLink(None), escs, 5, 65537))
-    assert (msg.count, msg.counter, msg.info) == (3, 1, 0b101)
+    (msg,) = on_wire(esc_info_messages(DIALECT.MAVLink(None), escs, 5))
+    assert (msg.count, msg.counter, msg.info) == (3, 30, 0b101)
     assert msg.temperature == [INT16_MAX - 1, INT16_MAX, INT16_MAX, INT16_MAX]
     assert msg.failure_flags[:2] == [3, 0]
     assert msg.error_count[0] == 7
@@ -147,6 +153,84 @@ def test_describe_sets_names_each_connection() -> None:
     assert OTHER_AUTOPILOT_SET["esc_telemetry"] > 0
 
 
+def test_index_stops_at_60_and_info_is_the_vehicles_in_every_batch() -> None:
+    escs = [snapshot(n, online=n % 3 != 0) for n in range(1, 71)]
+    status = on_wire(esc_status_messages(DIALECT.MAVLink(None), escs, 0))
+    info = on_wire(esc_info_messages(DIALECT.MAVLink(None), escs, 0))
+    assert [m.index for m in status] == [m.index for m in info] == list(range(0, 61, 4))
+    assert {m.count for m in info} == {64}
+    # Motors 1..8 (bits 0..7), every third offline: the same byte in every batch.
+    assert {m.info for m in info} == {0b1101_1011}
+
+
+# -- as the ground stations read them, decoded with upstream's definitions -----------------------
+
+UPSTREAM_COMMON = Path(__file__).resolve().parents[3] / "shared" / "mavlink" / "common.xml"
+
+
+@pytest.fixture(scope="module")
+def upstream_common(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
+    """A dialect generated from upstream's common.xml: ESC_INFO/ESC_STATUS as QGroundControl,
+    PX4 and mavros compile them."""
+    if not UPSTREAM_COMMON.is_file():
+        pytest.skip(f"upstream MAVLink XML not found at {UPSTREAM_COMMON}")
+    output = tmp_path_factory.mktemp("upstream") / "upstream_common.py"
+    opts = mavgen.Opts(str(output), wire_protocol="2.0", language="Python3")
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert mavgen.mavgen(opts, [str(UPSTREAM_COMMON)])
+    spec = importlib.util.spec_from_file_location("upstream_common_for_tests", output)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def decoded_by(dialect: ModuleType, messages: list[Any]) -> list[Any]:
+    """Each message packed by the bridge (1/191) and parsed by a receiver built on ``dialect``."""
+    packer = DIALECT.MAVLink(None, srcSystem=1, srcComponent=191)
+    receiver = dialect.MAVLink(None)
+    parsed = []
+    for message in messages:
+        (back,) = receiver.parse_buffer(message.pack(packer)) or []
+        parsed.append(back)
+    return parsed
+
+
+@pytest.mark.parametrize("n", [4, 6, 8])
+def test_qgroundcontrol_esc_page_and_mavros_read_every_motor(
+    upstream_common: ModuleType, n: int
+) -> None:
+    # The second motor fell silent; the rest report.
+    escs = [snapshot(m, online=m != 2, frames=100 * m) for m in range(1, n + 1)]
+    boot_usec = 12_345_678_901  # the autopilot's clock: 3.4 h since its boot
+    info = decoded_by(upstream_common, esc_info_messages(DIALECT.MAVLink(None), escs, boot_usec))
+    status = decoded_by(
+        upstream_common, esc_status_messages(DIALECT.MAVLink(None), escs, boot_usec)
+    )
+    assert {m.get_type() for m in info} == {"ESC_INFO"}
+    assert {m.get_type() for m in status} == {"ESC_STATUS"}
+
+    # QGroundControl's ESC page: one entry per ESC up to ESC_INFO ``count``, its online state
+    # bit i of the ``info`` byte (index 0's batch; every batch carries the same), its values
+    # from slot i % 4 of the batch whose ``index`` is the multiple of four below i.
+    by_index = {m.index: m for m in info}
+    status_by_index = {m.index: m for m in status}
+    vehicle_info = by_index[0].info
+    assert all(m.info == vehicle_info and m.count == n for m in info)
+    for motor, esc in enumerate(escs):
+        online = bool(vehicle_info >> motor & 1)
+        assert online == esc.online, f"motor {motor + 1} of {n} shows {online}"
+        batch, slot_no = by_index[motor - motor % 4], motor % 4
+        values = status_by_index[motor - motor % 4]
+        assert values.rpm[slot_no] == (esc.rpm if esc.online else 0)
+        assert batch.temperature[slot_no] == (4000 if esc.online else INT16_MAX)
+    # mavros: ``time_usec`` is the autopilot's boot time (it adds its timesync offset to it),
+    # ``counter`` the telemetry packets received, ``index`` within the definition's 0..60.
+    assert {m.time_usec for m in info + status} == {boot_usec}
+    assert {m.counter for m in info} == {sum(100 * m for m in range(1, n + 1))}
+    assert all(0 <= m.index <= 60 and m.index % 4 == 0 for m in info + status)
+
+
 # -- every field, end to end ---------------------------------------------------------------------
 
 
@@ -171,11 +255,9 @@ def test_every_field_of_every_batch(make_bridge: MakeBridge, n: int) -> None:
         assert (msg.get_srcSystem(), msg.get_srcComponent()) == OUR_ID
     for batch, msg in telemetry.items():
         check_esc_telemetry(msg, batch, expected)
-    # The counter counts ESC_INFO rounds: every batch of a round carries the same, +1 per round.
-    assert {m.counter for m in info.values()} == {1}
-    bridge.gcs.wait_for("ESC_INFO", lambda m: m.index == 0 and m.counter == 3)
-    rounds = [m.counter for _, m in bridge.gcs.of("ESC_INFO") if m.index == 0][:3]
-    assert rounds == [1, 2, 3]
+    # The counter counts telemetry frames received: no new frame, no change between rounds.
+    bridge.gcs.wait_for("ESC_INFO", since=bridge.gcs.count())
+    assert {m.counter for _, m in bridge.gcs.of("ESC_INFO")} == {sum(e.frames for e in expected)}
 
 
 def test_esc_telemetry_stops_at_32_escs(make_bridge: MakeBridge) -> None:

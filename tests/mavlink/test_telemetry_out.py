@@ -249,3 +249,36 @@ def test_tlog_holds_telemetry_readable_with_our_dialect(tmp_path: Path) -> None:
     check_esc_status(seen["ESC_STATUS"], expected, (0, 2**64 - 1))
     check_esc_info(seen["ESC_INFO"], expected, (0, 2**64 - 1))
     assert abs(seen["ESC_INFO"]._timestamp - time.time()) < 10
+
+
+def test_stamps_on_the_autopilots_boot_clock_once_it_tells_it(make_bridge: MakeBridge) -> None:
+    table = make_table(4)
+    populate(table, 4)
+    autopilot = Gcs(system=1, component=1)  # the obeyed autopilot, on the link's own URL
+    encoder = DIALECT.MAVLink(None)
+    boot_ms = 7_200_000  # two hours since the autopilot's boot
+    try:
+        make_bridge(table, gcs=autopilot, esc_status_hz=20.0, esc_info_hz=20.0)
+        # Before the autopilot said its time: µs since the Unix epoch.
+        assert abs(autopilot.wait_for("ESC_STATUS").time_usec / 1e6 - time.time()) < 10
+        # Another component's SYSTEM_TIME (a ground station's, a camera's) is not its clock.
+        autopilot.send(encoder.system_time_encode(0, 1000), source=(1, 100))
+        time.sleep(0.1)
+        since = autopilot.count()
+        assert autopilot.wait_for("ESC_STATUS", since=since).time_usec > 10**15
+        autopilot.send(encoder.system_time_encode(0, boot_ms))
+        sent = time.monotonic()
+        since = autopilot.count()
+        info = autopilot.wait_for("ESC_INFO", lambda m: m.time_usec < 10**12, since)
+        status = autopilot.wait_for("ESC_STATUS", lambda m: m.time_usec < 10**12, since)
+        for msg in (info, status):
+            elapsed_us = (time.monotonic() - sent) * 1e6
+            assert boot_ms * 1000 <= msg.time_usec <= boot_ms * 1000 + elapsed_us + 1000
+        # A TIMESYNC request carries the same clock in ns: a reboot (its clock back at 5 s) is
+        # followed at once.
+        autopilot.send(encoder.timesync_encode(0, 5_000_000_000))
+        since = autopilot.count()
+        rebooted = autopilot.wait_for("ESC_STATUS", lambda m: m.time_usec < 10**9, since)
+        assert 5_000_000 <= rebooted.time_usec < 5_000_000 + 2_000_000
+    finally:
+        autopilot.close()

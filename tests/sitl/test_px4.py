@@ -37,7 +37,7 @@ from __future__ import annotations
 import bisect
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,8 +86,9 @@ COMPONENT = {"aos": 191, "sor": 192, "ft": 193}  # one component per bridge, tol
 FT_MAX_CURRENT_A = 20.0  # the bridge's default ft_max_current_a
 FT_CURRENT_STEPS = 100_000  # FT currents travel in 1e-5 A
 FT_POLE_PAIRS = 7  # the bridge's default: ESC_STATUS rpm = FT erpm / 7
-# ESC_STATUS time_usec is the bridge's wall clock near its snapshot, and the observer's stamps
-# are the kernel's: a value may be stamped on the bus a little after time_usec.
+# ESC_STATUS time_usec is PX4's boot clock near the bridge's snapshot (the bridge reads PX4's
+# clock from its SYSTEM_TIME/TIMESYNC), and the observer's stamps are the kernel's: a value may
+# be stamped on the bus a little after time_usec.
 SNAPSHOT_SLACK_S = 0.05
 HOVER_S = 3.0
 AFTER_STALL_S = 2.0
@@ -263,6 +264,9 @@ def _fly(fl: Flight) -> None:
     ev["restart_ready"] = px4.wait_ready()
     px4.restore_links()
     wait_for_outputs(ev["restart"], "restart")
+    # PX4's clock at the GCS (MAV_CMD_SET_MESSAGE_INTERVAL, SYSTEM_TIME at 5 Hz): the bridge
+    # stamps its ESC_STATUS with PX4's boot time, which the ESC telemetry check maps onto ours.
+    gcs.command(target, 511, [2, 200_000], 10, "SYSTEM_TIME at 5 Hz")
     ev["arm_cmd"] = time.monotonic()
     gcs.command(target, 400, [1], 20, "arm after the restart")
     gcs.command(target, 22, nan_position, 10, "takeoff")
@@ -284,6 +288,35 @@ def _fly(fl: Flight) -> None:
 
 
 # -- reading the records ------------------------------------------------------------------------
+
+
+def _boot_clock(
+    gcs: GroundStation, sysid: int, ev: dict[str, float]
+) -> Callable[[float, int], float]:
+    """Maps PX4's boot clock (µs) onto our monotonic clock (s), for a message received at a
+    given time, from PX4's SYSTEM_TIME and TIMESYNC requests at the ground station: the least
+    offset of those within 5 s of it on the same side of the stall (PX4's clock stands still
+    while it is stopped)."""
+    samples: list[tuple[float, float]] = [
+        (t, t - m.time_boot_ms / 1e3) for t, m in gcs.received("SYSTEM_TIME", sender=(sysid, 1))
+    ]
+    samples += [
+        (t, t - m.ts1 / 1e9)
+        for t, m in gcs.received("TIMESYNC", sender=(sysid, 1))
+        if m.tc1 == 0 and m.ts1 > 0
+    ]
+
+    def on_our_clock(received: float, time_usec: int) -> float:
+        after_stall = received > ev["resume"]
+        offsets = [
+            offset
+            for t, offset in samples
+            if abs(t - received) <= 5.0 and (t > ev["resume"]) == after_stall
+        ]
+        assert offsets, f"no SYSTEM_TIME or TIMESYNC from PX4 near {received:.1f}"
+        return time_usec / 1e6 + min(offsets)
+
+    return on_our_clock
 
 
 def _outputs(side: Side, sysid: int) -> tuple[list[float], list[tuple[float, ...]]]:
@@ -719,13 +752,14 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
         assert info.count == 4 and info.info == 0b1111, f"{name}: {info}"
         assert list(info.failure_flags[:4]) == [0, 0, 0, 0], f"{name}: {info}"
     # Each rpm and voltage at the GCS is one the ESC reported on the bus shortly before.
-    # By when the bridge took each snapshot (ESC_STATUS time_usec, wall clock), not by when
-    # PX4 passed it on: after the stall PX4 forwards what it read late.
-    wall_minus_monotonic = time.time() - time.monotonic()
+    # By when the bridge took each snapshot (ESC_STATUS time_usec, PX4's boot clock), not by
+    # when PX4 passed it on: after the stall PX4 forwards what it read late.
+    assert all(m.time_usec < 10**12 for _, m in statuses + infos), f"{name}: not PX4's boot clock"
+    on_our_clock = _boot_clock(flight.gcs, sysid, ev)
     rpms, volts = _reported(side)
     spinning = exact = 0
-    for _, status in statuses:
-        t = status.time_usec / 1e6 - wall_minus_monotonic
+    for received, status in statuses:
+        t = on_our_clock(received, status.time_usec)
         for i in range(4):
             # The value is one the ESC sent; the observer (a Python thread among three busy
             # buses) may have missed that very frame, so a value between the ESC's lowest and
