@@ -6,9 +6,9 @@ Run: ``python bench/sitl_table.py [--flights 3] [--json FILE]``
 package tests/sitl.)
 
 Each flight is one run of ``pytest tests/sitl`` (both files in parallel, as in the suite): an
-ArduCopter SITL flown through a CKESC and an FT bridge (source SERVO_OUTPUT_RAW), and a PX4
-SITL (SIH quad) flown through three bridges (ACTUATOR_OUTPUT_STATUS with CKESC and FT,
-SERVO_OUTPUT_RAW with CKESC). The tests record what they measure in the file named by
+ArduCopter SITL flown through a CKESC, an FT and a DroneCAN bridge (source SERVO_OUTPUT_RAW),
+and a PX4 SITL (SIH quad) flown through three bridges (ACTUATOR_OUTPUT_STATUS with CKESC and
+FT, SERVO_OUTPUT_RAW with CKESC). The tests record what they measure in the file named by
 ``$ESC_BRIDGE_SITL_REPORT`` (tests/sitl/conftest.py ``measured``); this script reads it back and
 prints one row per autopilot, source and ESC protocol, each number the median over the flights
 (with the range when they differ). The checks themselves stay the tests': each flight's pytest
@@ -43,12 +43,14 @@ class Row:
     source: str
     protocol: str
     key: str
-    """The tests' name for this bridge: ArduCopter's rig ("ckesc"), PX4's side ("aos")."""
+    """The tests' name for this bridge: ArduCopter's rig (its ESC family, "ckesc"), PX4's side
+    ("aos")."""
 
 
 ROWS = (
     Row("ArduCopter", "servo_output_raw", "CKESC", "ckesc"),
     Row("ArduCopter", "servo_output_raw", "FT", "ft"),
+    Row("ArduCopter", "servo_output_raw", "DroneCAN", "dronecan"),
     Row("PX4", "actuator_output_status", "CKESC", "aos"),
     Row("PX4", "servo_output_raw", "CKESC", "sor"),
     Row("PX4", "actuator_output_status", "FT", "ft"),

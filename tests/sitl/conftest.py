@@ -11,10 +11,11 @@ deadline, instance numbers held by lock files (:func:`claimed_instance`), the au
 process signals (:class:`SitlAutopilot`), the bridge through its CLI (:func:`start_bridge`,
 :func:`write_bridge_config`), the simulated ESCs (:func:`start_sim`), observers with a 4 MiB
 receive buffer whose kernel drops are counted (:func:`wide_observer`, :func:`udp_drops`), the
-command decoder (:func:`motor_commands`), one :class:`GroundStation` (TCP for ArduPilot, UDP for
-PX4) and :func:`measured`. The taps differ because the links do: ArduPilot's TCP tap
-(``mavtap.py``) and PX4's UDP relay (``_px4.UdpTap``). Every process started here is stopped in
-a ``finally`` (the fixtures use context managers), also when a test fails.
+frames read through their ESC family (:func:`frame_reader`, :func:`commands_by_motor`), one
+:class:`GroundStation` (TCP for ArduPilot, UDP for PX4) and :func:`measured`. The taps differ
+because the links do: ArduPilot's TCP tap (``mavtap.py``) and PX4's UDP relay
+(``_px4.UdpTap``). Every process started here is stopped in a ``finally`` (the fixtures use
+context managers), also when a test fails.
 """
 
 from __future__ import annotations
@@ -37,11 +38,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import can
 import pytest
 from conftest import ESC_BRIDGE, ROOT, Observer, can_args, free_port
 
-from bridge.escs import ckesc, ft
+from bridge.config import build_config
+from bridge.config_file import read_config_file
+from bridge.escs import registry
+from bridge.escs.family import EscFamily, EscFrame
 from bridge.mavlink import load_dialect
 
 # The project's dialect (ArduPilot's messages plus ESC_INFO/ESC_STATUS), MAVLink 2: tests/conftest
@@ -58,6 +61,8 @@ MAVTAP = Path(__file__).resolve().parent / "mavtap.py"
 
 # ArduPilot SITL's TCP ports for instance 0 (SERIAL0, SERIAL1, SERIAL2); ``-I N`` adds 10·N.
 ARDUPILOT_SERIAL_PORTS = (5760, 5762, 5763)
+# A further SERIALn a test adds (ArduCopter(serials=...)): ``--serialn tcp:n`` listens on 5760 + n.
+ARDUPILOT_TCP_BASE = 5760
 # The sim's own UDP port (RC input) at instance 0, also shifted by 10·N.
 ARDUPILOT_UDP_PORTS = (5501,)
 
@@ -343,7 +348,8 @@ class ArduCopter(SitlAutopilot):
 
     Its defaults file is the build's ``copter.parm`` plus ``params`` (written to the working
     directory). SITL starts its loop only when something connects to SERIAL0, so connect the
-    ground station there first."""
+    ground station there first. ``serials``: more MAVLink 2 links, SERIALn for each n (3..9)
+    on TCP 5760 + n (+ 10·instance; :meth:`port`), beside SERIAL1 and SERIAL2."""
 
     def __init__(
         self,
@@ -351,13 +357,20 @@ class ArduCopter(SitlAutopilot):
         workdir: Path,
         instance: int,
         params: dict[str, float] | None = None,
+        serials: Sequence[int] = (),
     ) -> None:
         self.build = build
         self.workdir = workdir
         self.instance = instance
+        self.serials = tuple(serials)
+        assert all(3 <= n <= 9 for n in self.serials), f"SERIAL3..9 only: {self.serials}"
         workdir.mkdir(parents=True, exist_ok=True)
         self.defaults = workdir / "defaults.parm"
-        extra = "".join(f"{name} {value:g}\n" for name, value in (params or {}).items())
+        # SERIALn_PROTOCOL 2: MAVLink 2 (SITL's SERIAL3 and 4 are GPS by default).
+        links = {f"SERIAL{n}_PROTOCOL": 2.0 for n in self.serials}
+        extra = "".join(
+            f"{name} {value:g}\n" for name, value in {**links, **(params or {})}.items()
+        )
         self.defaults.write_text(
             build.defaults.read_text()
             + "\n# esc-bridge tests: ESC data comes from the bridge\n"
@@ -368,7 +381,8 @@ class ArduCopter(SitlAutopilot):
         self.realtime = False
 
     def port(self, serial: int) -> int:
-        return ARDUPILOT_SERIAL_PORTS[serial] + 10 * self.instance
+        base = ARDUPILOT_SERIAL_PORTS[serial] if serial < 3 else ARDUPILOT_TCP_BASE + serial
+        return base + 10 * self.instance
 
     def start(self) -> None:
         self.starts += 1
@@ -382,6 +396,7 @@ class ArduCopter(SitlAutopilot):
                 "--defaults",
                 str(self.defaults),
                 f"-I{self.instance}",
+                *(arg for n in self.serials for arg in (f"--serial{n}", f"tcp:{n}")),
             ],
             self.workdir / f"arducopter-{self.starts}.log",
             cwd=self.workdir,
@@ -431,6 +446,15 @@ def write_bridge_config(
         + '[mixer]\nname = "passthrough-4"\n[escs]\nids = [1, 2, 3, 4]\n'
     )
     return path
+
+
+def esc_period_s(config: Path) -> float:
+    """How often a bridge run with ``config`` commands each ESC: its family's driver's ticks
+    per cycle at its output rate (CKESC, DroneCAN: every tick; FT: one ESC a tick)."""
+    built = build_config(read_config_file(config), str(config))
+    family = registry.family(built.output.protocol)
+    rate_hz = built.output.rate_hz or family.default_rate_hz
+    return family.driver(built).ticks_per_cycle / rate_hz
 
 
 def start_bridge(
@@ -713,21 +737,25 @@ class GroundStation:
             time.sleep(0.02)
 
 
-def motor_commands(protocol: str, msg: can.Message) -> dict[int, float] | None:
-    """The motor commands one command frame carries, by motor (0-based: CKESC RawCommand_12b
-    group g carries motors 4(g-1)..4g-1 as throttles; an FT SetCurrent carries its ESC's motor
-    as a current in A); None for any other frame. A frame that does not decode raises
-    CodecError (the callers count those)."""
-    if protocol == "ckesc":
-        frame: Any = ckesc.decode(msg)
-        if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
-            return None
-        first = 4 * (frame.message.group - 1)
-        return {first + i: float(v) for i, v in enumerate(frame.message.throttles)}
-    frame = ft.decode(msg)
-    if frame is None or not isinstance(frame.message, ft.SetCurrent):
-        return None
-    return {frame.esc_id - 1: frame.message.current_a}
+def frame_reader(family: str) -> EscFamily:
+    """The ESC family ``family`` (registry name) for one pass over one stream of frames: an
+    instance of its own, since a family may keep state per stream (DroneCAN puts multi-frame
+    transfers back together), and a pass that starts mid-record must not leave a half transfer
+    to the next."""
+    return type(registry.family(family))()
+
+
+def commands_by_motor(reader: EscFamily, frame: EscFrame) -> dict[int, float] | None:
+    """The motor commands a frame ``reader`` decoded carries, by motor (0-based), as the family
+    reads them back (:meth:`EscFamily.commands_seen`: CKESC throttles by channel, FT currents
+    in A by ESC ID, DroneCAN RawCommand values by ESC number; the tests' bridges and ESCs
+    number channels and IDs 1..4 for motors 1..4); None for any other frame."""
+    commands = {}
+    for seen in reader.commands_seen(frame):
+        target = seen.node_id if seen.node_id is not None else seen.channel
+        assert target is not None, f"{reader.name}: a command for no ESC: {seen}"
+        commands[target - 1] = seen.value
+    return commands or None
 
 
 def stream_answers(bridge_log: str, message: str) -> str:

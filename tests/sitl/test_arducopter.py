@@ -1,12 +1,14 @@
 """The bridge against a real ArduCopter SITL: one autopilot start, one flight, many checks.
 
 What runs (all on loopback, see conftest.py): ArduCopter SITL (quad, real time) with a ground
-station on SERIAL0; two bridges through their CLI, a CKESC one (RawCommand_12b, 400 Hz) on
-SERIAL1 and an FT one (current mode, 20 A full scale, 100 Hz per ESC) on SERIAL2, each through
-a recording tap and each on a CAN bus of its own with four simulated ESCs and an independent
-observer. The module-scoped ``flight`` fixture flies once (about 80 s: ArduCopter refuses to
-arm for ~40 s after a start) and keeps everything; each test then asserts one property of that
-record:
+station on SERIAL0; three bridges through their CLI, a CKESC one (RawCommand_12b, 400 Hz) on
+SERIAL1, an FT one (current mode, 20 A full scale, 100 Hz per ESC) on SERIAL2 and a DroneCAN one
+(RawCommand, 400 Hz) on SERIAL5 (added with ``--serial5 tcp:5``), each through a recording tap
+and each on a CAN bus of its own with four simulated ESCs and an independent observer. A rig is
+an ESC family's name (the registry's) and its expected command; the frames are read through the
+family (``commands_seen``, ``telemetry``), so the checks are the same for every rig. The
+module-scoped ``flight`` fixture flies once (about 80 s: ArduCopter refuses to arm for ~40 s
+after a start) and keeps everything; each test then asserts one property of that record:
 
 1. while the autopilot boots: ArduCopter's own motor test (B), during which the autopilot is
    killed (SIGKILL); a restart in the same directory and instance;
@@ -21,7 +23,8 @@ a "SITL measurements" section at the end of the run. ESC_BRIDGE_ARDUCOPTER names
 build (see conftest.py).
 
 The scaling is the passthrough mixer's: PWM 1000..2000 µs to 0..1, then CKESC throttle
-round(2000·x) and FT current 20 A·x (the bridge's `[escs] ft_max_current_a` default).
+round(2000·x), FT current 20 A·x (the bridge's `[escs] ft_max_current_a` default) and DroneCAN
+RawCommand round(8191·x).
 """
 
 from __future__ import annotations
@@ -31,21 +34,22 @@ import contextlib
 import itertools
 import os
 import statistics
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import can
 import pytest
 from conftest import Observer, free_port
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc, ft
+from bridge.escs.family import EscFamily, EscTelemetry
 
 from .conftest import (
     ARDUPILOT_SERIAL_PORTS,
+    ARDUPILOT_TCP_BASE,
     ARDUPILOT_UDP_PORTS,
     ArduCopter,
     ArduCopterBuild,
@@ -55,10 +59,12 @@ from .conftest import (
     ServoOutput,
     TapRecord,
     armed,
+    commands_by_motor,
+    esc_period_s,
+    frame_reader,
     from_autopilot,
     mavlink,
     measured,
-    motor_commands,
     reserved_instance,
     start_bridge,
     start_sim,
@@ -69,10 +75,12 @@ from .conftest import (
     write_bridge_config,
 )
 
-PERIOD_S = 1 / 400  # both bridges tick at 400 Hz (CKESC 400 Hz; FT 4 ESCs x 100 Hz)
+PERIOD_S = 1 / 400  # every bridge ticks at 400 Hz (CKESC, DroneCAN 400 Hz; FT 4 ESCs x 100 Hz)
 INPUT_TIMEOUT_S = 0.100  # [output] input_timeout_ms default
 STREAM_HZ = 200  # [mavlink] stream_rate_hz default
 FT_FULL_SCALE_A = 20.0
+DRONECAN_FULL_SCALE = 8191
+POLE_PAIRS = 7  # [telemetry] pole_pairs default: the bridge's rpm of a family reporting erpm
 # The observer's and the tap's stamps, taken in two processes, may be this far apart (as in
 # test_px4.py's lag rule): a frame stamped just before the tap's stamp of the output it carries.
 CLOCK_SKEW_S = 0.001
@@ -83,7 +91,6 @@ ARMING_LATE_S = 0.010
 # A frame is judged against the motor output only while that output is fresh: newer than half
 # the input timeout at the tap. Older ones (the stall, the kill) are the failsafe tests' part.
 FRESH_S = INPUT_TIMEOUT_S / 2
-CKESC_LINK, FT_LINK = 0, 1
 TEST_THROTTLE_PERCENT = 20.0
 HEARTBEAT_HZ = 20  # [mavlink] autopilot_heartbeat_hz default; ArduCopter grants it
 # A FT ESC's frame comes every 10 ms, the HEARTBEAT's forwarding and the tap on a loaded
@@ -109,45 +116,47 @@ def ft_current(pwm: int) -> float:
     return (min(max(pwm, 1000), 2000) - 1000) / 1000 * FT_FULL_SCALE_A
 
 
+def dronecan_command(pwm: int) -> float:
+    return round((min(max(pwm, 1000), 2000) - 1000) / 1000 * DRONECAN_FULL_SCALE)
+
+
+@dataclass(frozen=True)
+class RigSpec:
+    """A rig: the ESC family (its registry name), what its commands should be for a PWM, and
+    how far a command may be from that (the bridge's float arithmetic)."""
+
+    family: str
+    expected: Callable[[int], float]
+    tolerance: float
+
+
+# In the order of their links (SERIAL1, SERIAL2, SERIAL5) and components (191, 192, 193).
+RIGS = (
+    RigSpec("ckesc", ckesc_throttle, 0.0),
+    RigSpec("ft", ft_current, 1e-4),
+    RigSpec("dronecan", dronecan_command, 1.0),
+)
+RIG_NAMES = [spec.family for spec in RIGS]
+SERIALS = (1, 2, 5)
+EXTRA_SERIALS = tuple(n for n in SERIALS if n > 2)
+
+
 @dataclass(frozen=True)
 class Command:
     """One command frame as the observer saw it: kernel receive time, motor index (0-based),
-    value (CKESC throttle or FT amps). A CKESC 12b frame becomes four of these."""
+    value (CKESC throttle, FT amps, DroneCAN RawCommand value). A frame for four ESCs (CKESC
+    12b, DroneCAN) becomes four of these."""
 
     t: float
     motor: int
     value: float
 
 
-def decode_commands(
-    protocol: str, frames: Sequence[tuple[float, can.Message]], malformed: list[str] | None = None
-) -> list[list[Command]]:
-    """Per command frame (CKESC: all four motors; FT: one ESC), its commands. Frames that do
-    not decode, and CKESC groups past the quad's first, go to ``malformed``."""
-    out = []
-    for t, msg in frames:
-        try:
-            commands = motor_commands(protocol, msg)
-        except CodecError as exc:
-            if malformed is not None:
-                malformed.append(f"{msg}: {exc}")
-            continue
-        if commands is None:
-            continue
-        if max(commands) > 3:
-            if malformed is not None:
-                malformed.append(f"{msg}: commands for motors {sorted(commands)} on a quad")
-            continue
-        out.append([Command(t, motor, value) for motor, value in commands.items()])
-    return out
-
-
 @dataclass
 class Rig:
-    """One bridge and what sits on its bus."""
+    """One bridge and what sits on its bus; ``name`` is its ESC family's."""
 
     name: str
-    protocol: str
     link: int
     component: int
     can_port: int
@@ -156,21 +165,66 @@ class Rig:
     sim: Process
     expected: Callable[[int], float]
     tolerance: float
+    esc_period_s: float
+    """How often each ESC gets a command (the family's ticks per cycle at the bridge's rate)."""
+    reader: EscFamily
+    """The rig's family, decoding this bus's frames (:func:`frame_reader`)."""
     commands: list[list[Command]] = field(default_factory=list)
+    """Per command frame (CKESC, DroneCAN: all four motors; FT: one ESC), its commands."""
+    telemetry: list[tuple[float, EscTelemetry]] = field(default_factory=list)
+    """Every telemetry frame: its receive time and what it said, in the family's neutral terms."""
     malformed: list[str] = field(default_factory=list)
+    """Frames that do not decode, and commands for motors past the quad's four."""
+    decoded: int = 0
+    """How many of the observer's frames :meth:`decode_new` has read."""
+    decode_s: float = 0.0
+    """The time decoding took."""
+    lock: threading.Lock = field(default_factory=threading.Lock)
     observer_drops: int = 0
     tap: TapRecord = field(default_factory=TapRecord)
     bridge_exit: int | None = None
 
-    def decode(self) -> None:
+    def decode_new(self) -> None:
+        """Decode the frames the observer got since the last call, in the order it got them
+        (not by their stamps: the kernel's, moved onto the monotonic clock, can put the frames
+        of a multi-frame transfer a few µs out of order). Called from one thread only (the
+        flight's :class:`Decoding`): a family's decoder keeps its state per thread."""
         with self.observer._lock:
-            frames = list(self.observer.frames)
-        frames.sort(key=lambda f: f[0])
-        self.commands = decode_commands(self.protocol, frames, self.malformed)
+            frames = self.observer.frames[self.decoded :]
+        self.decoded += len(frames)
+        began = time.perf_counter()
+        commands: list[list[Command]] = []
+        telemetry: list[tuple[float, EscTelemetry]] = []
+        malformed: list[str] = []
+        for t, msg in frames:
+            # Let the observers' threads in: a thread that keeps the GIL holds each of them to
+            # a frame per switch interval (5 ms), and a bus of 1 600 frames/s falls behind.
+            time.sleep(0)
+            try:
+                frame = self.reader.decode(msg)
+            except CodecError as exc:
+                malformed.append(f"{msg}: {exc}")
+                continue
+            if frame is None:
+                continue
+            by_motor = commands_by_motor(self.reader, frame)
+            if by_motor is None:
+                reading = self.reader.telemetry(frame)
+                if reading is not None:
+                    telemetry.append((t, reading))
+            elif max(by_motor) > 3:
+                malformed.append(f"{msg}: commands for motors {sorted(by_motor)} on a quad")
+            else:
+                commands.append([Command(t, motor, value) for motor, value in by_motor.items()])
+        with self.lock:
+            self.commands.extend(commands)
+            self.telemetry.extend(telemetry)
+            self.malformed.extend(malformed)
+        self.decode_s += time.perf_counter() - began
 
-    def telemetry_frames(self) -> list[tuple[float, can.Message]]:
-        with self.observer._lock:
-            return list(self.observer.frames)
+    def commands_since(self, t: float) -> list[list[Command]]:
+        with self.lock:
+            return [frame for frame in self.commands if frame[0].t >= t]
 
     def value_of(self, servo: ServoOutput, motor: int) -> float:
         return self.expected(servo.servos[motor])
@@ -180,6 +234,9 @@ class Rig:
         return bisect.bisect_right(self._servo_times, t) - 1
 
     def prepare(self) -> None:
+        """After the flight: the commands in time order, the tap's record indexed."""
+        self.commands.sort(key=lambda frame: frame[0].t)
+        self.telemetry.sort(key=lambda reading: reading[0])
         self._servo_times = [s.t for s in self.tap.servo]
         self._servo_sent = [s.t_sent for s in self.tap.servo]
 
@@ -201,6 +258,39 @@ class Rig:
 
     def matches(self, value: float, allowed: set[float]) -> bool:
         return any(abs(value - a) <= self.tolerance for a in allowed)
+
+
+class Decoding:
+    """Decodes every rig's bus in a thread of its own while the flight goes on: DroneCAN's
+    frames cost the ``dronecan`` package ~0.1-0.3 ms each, some 15 s of CPU for a flight, spent
+    while the flight mostly waits (ArduCopter's arming) rather than after it."""
+
+    def __init__(self, rigs: Sequence[Rig], poll_s: float = 0.2) -> None:
+        self.rigs = list(rigs)
+        self.poll_s = poll_s
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="decoding", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(self.poll_s):
+                for rig in self.rigs:
+                    rig.decode_new()
+            for rig in self.rigs:  # what came until finish()
+                rig.decode_new()
+        except Exception as exc:  # noqa: BLE001 - re-raised by finish()
+            self.error = exc
+
+    def finish(self) -> None:
+        """Decode what the observers got so far, and stop."""
+        self._stop.set()
+        self._thread.join(120)
+        assert not self._thread.is_alive(), "the decoding thread did not finish within 120 s"
+        error, self.error = self.error, None  # raised once (the exit stack calls again)
+        if error is not None:
+            raise AssertionError(f"decoding failed: {error!r}") from error
 
 
 @dataclass
@@ -235,10 +325,8 @@ def streaming(tap: MavTap, link: int, since: float, min_messages: int = 50) -> b
 
 
 def bridge_spinning(rig: Rig, since: float) -> bool:
-    """A command frame with some motor non-zero since ``since``."""
-    with rig.observer._lock:
-        frames = [(t, m) for t, m in rig.observer.frames if t >= since]
-    return any(c.value > 0 for frame in decode_commands(rig.protocol, frames) for c in frame)
+    """A command frame with some motor non-zero since ``since`` (as decoded so far)."""
+    return any(c.value > 0 for frame in rig.commands_since(since) for c in frame)
 
 
 def message_interval(gcs: GroundStation, msg_id: int, hz: float) -> tuple[int, float]:
@@ -350,7 +438,8 @@ def fly(flight: Flight, tap: MavTap) -> None:
         wait_until(
             lambda rig=rig: bridge_spinning(rig, test.sent),  # type: ignore[misc]
             3,
-            f"the {rig.name} bridge spinning a motor in ArduCopter's motor test",
+            f"the {rig.name} bridge spinning a motor in ArduCopter's motor test (frames "
+            f"decoded: {rig.decoded} of {len(rig.observer.frames)}; {rig.decode_s:.1f} s spent)",
         )
     time.sleep(0.5)
     flight.events["kill"] = time.monotonic()
@@ -402,27 +491,26 @@ def flight(
 ) -> Iterator[Flight]:
     workdir: Path = tmp_path_factory.mktemp("arducopter")
     with contextlib.ExitStack() as stack:
-        instance = stack.enter_context(
-            reserved_instance(ARDUPILOT_SERIAL_PORTS, ARDUPILOT_UDP_PORTS)
+        tcp_ports = (*ARDUPILOT_SERIAL_PORTS, *(ARDUPILOT_TCP_BASE + n for n in EXTRA_SERIALS))
+        instance = stack.enter_context(reserved_instance(tcp_ports, ARDUPILOT_UDP_PORTS))
+        ap = ArduCopter(
+            arducopter_build, workdir, instance, {"SIM_ESC_TELEM": 0}, serials=EXTRA_SERIALS
         )
-        ap = ArduCopter(arducopter_build, workdir, instance, {"SIM_ESC_TELEM": 0})
         stack.callback(ap.stop)
-        tap = MavTap(workdir, [ap.port(1), ap.port(2)])
+        tap = MavTap(workdir, [ap.port(n) for n in SERIALS])
         stack.callback(tap.stop)
         rigs = []
-        for name, protocol, link, component, expected, tol in (
-            ("ckesc", "ckesc", CKESC_LINK, 191, ckesc_throttle, 0.0),
-            ("ft", "ft", FT_LINK, 192, ft_current, 1e-4),
-        ):
+        for link, spec in enumerate(RIGS):
+            name, component = spec.family, 191 + link
             can_port = free_port()
             observer = wide_observer(can_port)
             stack.callback(observer.close)
-            sim = start_sim(can_port, workdir / f"sim-{name}.log", protocol)
+            sim = start_sim(can_port, workdir / f"sim-{name}.log", name)
             stack.callback(sim.stop)
             config = write_bridge_config(
                 workdir / f"{name}.toml",
                 component_id=component,
-                protocol=protocol,
+                protocol=name,
                 stream_rate_hz=STREAM_HZ,
                 input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
             )
@@ -436,8 +524,22 @@ def flight(
             )
             stack.callback(bridge.stop)
             rigs.append(
-                Rig(name, protocol, link, component, can_port, observer, bridge, sim, expected, tol)
+                Rig(
+                    name,
+                    link,
+                    component,
+                    can_port,
+                    observer,
+                    bridge,
+                    sim,
+                    spec.expected,
+                    spec.tolerance,
+                    esc_period_s(config),
+                    frame_reader(name),
+                )
             )
+        decoding = Decoding(rigs)
+        stack.callback(decoding.finish)
         ap.start()
         started = time.monotonic()
         gcs = GroundStation(f"tcp:127.0.0.1:{ap.port(0)}")
@@ -458,11 +560,17 @@ def flight(
                 rig.tap = records.get(rig.link, TapRecord())
                 rig.bridge_exit = rig.bridge.stop()
                 rig.observer_drops = udp_drops(rig.observer.bus)
-                rig.decode()
+            decoding.finish()
+            for rig in rigs:
                 rig.prepare()
         result.events["end"] = time.monotonic()
         measured("ArduCopter flight wall time", f"{result.events['end'] - started:.1f} s")
         measured("ArduCopter SITL at SCHED_FIFO 5", str(ap.realtime))
+        for rig in rigs:
+            measured(
+                f"{rig.name} frames decoded by the test",
+                f"{rig.decoded} in {rig.decode_s:.1f} s (its decoding thread, during the flight)",
+            )
         measured(
             "ArduCopter arming accepted",
             f"{result.events['armed'] - result.events['restart']:.1f} s after its (re)start, "
@@ -554,7 +662,7 @@ PHASES = [
 
 def phase_params() -> list[Any]:
     params = []
-    for rig in ("ckesc", "ft"):
+    for rig in RIG_NAMES:
         for phase in PHASES:
             params.append(pytest.param(rig, phase, id=f"{rig}-{phase}"))
     return params
@@ -624,7 +732,7 @@ def test_every_frame_carries_the_newest_motor_output(
     ("rig_name", "phase"),
     [
         pytest.param(r, p, id=f"{r}-{p}")
-        for r in ("ckesc", "ft")
+        for r in RIG_NAMES
         for p in ("takeoff and hover", "hover after the stall, land")
     ],
 )
@@ -665,8 +773,7 @@ def safe_deadline_check(rig: Rig, until: float, what: str) -> tuple[float, float
     (zero) command within input_timeout + 2 output periods, and nothing but safe commands
     follow until ``until``. Returns (last input, first safe frame)."""
     last = rig.tap.servo[rig.newest_index(until - 1e-6)]
-    period = PERIOD_S if rig.protocol == "ckesc" else 4 * PERIOD_S  # FT: each ESC at 100 Hz
-    deadline = last.t + INPUT_TIMEOUT_S + 2 * period
+    deadline = last.t + INPUT_TIMEOUT_S + 2 * rig.esc_period_s
     after = [c for f in rig.commands for c in f if last.t < c.t <= until]
     zero_by = {
         m: min((c.t for c in after if c.motor == m and c.value == 0), default=None)
@@ -687,7 +794,7 @@ def safe_deadline_check(rig: Rig, until: float, what: str) -> tuple[float, float
     return last.t, first_safe
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_stall_goes_safe_in_time(flight: Flight, rig_name: str) -> None:
     """SIGSTOP of the autopilot for 1 s mid-hover: safe within input_timeout + 2 periods."""
     rig = rig_of(flight, rig_name)
@@ -698,7 +805,7 @@ def test_stall_goes_safe_in_time(flight: Flight, rig_name: str) -> None:
     measured(f"{rig_name} failsafe after SIGSTOP", f"{ms(first_safe - last)} after the last input")
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_stall_recovers_after_sigcont(flight: Flight, rig_name: str) -> None:
     """After SIGCONT the bridge tracks the motor outputs again within a few output periods."""
     rig = rig_of(flight, rig_name)
@@ -717,7 +824,7 @@ def test_stall_recovers_after_sigcont(flight: Flight, rig_name: str) -> None:
     )
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_kill_and_restart(flight: Flight, rig_name: str) -> None:
     """The autopilot killed mid motor test: safe values in time, kept up (the loop goes on
     sending), then the bridge reconnects to the restarted autopilot and gets its outputs."""
@@ -747,7 +854,7 @@ def motor_tests_of(flight: Flight) -> list[MotorTest]:
     return list(flight.motor_tests)
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_ardupilot_motor_test_spins_the_right_motor(flight: Flight, rig_name: str) -> None:
     """ArduCopter's own DO_MOTOR_TEST: the ESC on the output ArduCopter drives spins at the
     test's value, and no other ESC gets anything but zero."""
@@ -766,7 +873,7 @@ def test_ardupilot_motor_test_spins_the_right_motor(flight: Flight, rig_name: st
         )
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_ardupilot_motor_test_within_a_heartbeat_period(flight: Flight, rig_name: str) -> None:
     """The motor spins within one HEARTBEAT period (at the 20 Hz the bridge asks for and
     ArduCopter grants) of the test's first output reaching the bridge, plus a tick and the
@@ -790,9 +897,10 @@ def test_ardupilot_motor_test_within_a_heartbeat_period(flight: Flight, rig_name
 
 
 def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
-    """ESC_TELEMETRY_1_TO_4 from each bridge (components 191 and 192), forwarded by ArduCopter
-    to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus;
-    ArduCopter sends none of its own (SIM_ESC_TELEM 0)."""
+    """ESC_TELEMETRY_1_TO_4 from each bridge (components 191..193), forwarded by ArduCopter
+    to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus
+    (read as the family's neutral telemetry; erpm over the pole pairs); ArduCopter sends none
+    of its own (SIM_ESC_TELEM 0)."""
     start, end = flight.events["hover"], flight.events["stall"]
     received = flight.gcs.received("ESC_TELEMETRY_1_TO_4", flight.started)
     own = [m for _, m in received if m.get_srcComponent() == 1]
@@ -801,24 +909,19 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
         bus: dict[int, list[tuple[float, int, int]]] = {m: [] for m in range(4)}
         rpm_now: dict[int, int] = {}
         volts_now: dict[int, int] = {}
-        for t, msg in sorted(rig.telemetry_frames(), key=lambda f: f[0]):
-            with contextlib.suppress(CodecError):  # counted by the bus test
-                frame: Any = (ckesc.decode if rig.protocol == "ckesc" else ft.decode)(msg)
-                if frame is None:
-                    continue
-                m = frame.node_id - 1
-                rec = frame.message
-                if isinstance(rec, ckesc.Msg1):
-                    rpm_now[m] = abs(rec.speed_rpm)
-                elif isinstance(rec, ft.RealtimeData1):
-                    rpm_now[m] = abs(int(rec.erpm / 7))
-                elif isinstance(rec, ckesc.Msg2 | ft.RealtimeData2):
-                    v = rec.voltage_v if isinstance(rec, ckesc.Msg2) else rec.battery_voltage_v
-                    volts_now[m] = round(v * 100)
-                else:
-                    continue
-                if m in rpm_now and m in volts_now:
-                    bus[m].append((t, rpm_now[m], volts_now[m]))
+        for t, telemetry in rig.telemetry:
+            m = telemetry.node_id - 1
+            rpm = telemetry.rpm
+            if rpm is None and telemetry.erpm is not None:
+                rpm = int(telemetry.erpm / POLE_PAIRS)
+            if rpm is None and telemetry.voltage_v is None:
+                continue
+            if rpm is not None:
+                rpm_now[m] = abs(rpm)
+            if telemetry.voltage_v is not None:
+                volts_now[m] = round(telemetry.voltage_v * 100)
+            if m in rpm_now and m in volts_now:
+                bus[m].append((t, rpm_now[m], volts_now[m]))
         mine = [
             (t, m)
             for t, m in received
@@ -917,7 +1020,7 @@ def test_heartbeat_interval(flight: Flight) -> None:
     assert delay_s <= 0.025, f"armed HEARTBEAT {ms(delay_s)} after the test began"
 
 
-@pytest.mark.parametrize("rig_name", ["ckesc", "ft"])
+@pytest.mark.parametrize("rig_name", RIG_NAMES)
 def test_bus_clean_and_bridge_stopped_cleanly(flight: Flight, rig_name: str) -> None:
     """Every frame on the bus decodes (the bridge's commands and the ESCs' telemetry), the
     observer lost none of them, and the bridge, stopped with SIGTERM after the flight, exits

@@ -10,6 +10,12 @@ CAN observer of its own:
   ``mavlink start``;
 * ``ft``: ``--source actuator_output_status``, Flipsky FT in current mode, on another one.
 
+Each side's bus is read through its ESC family (the registry's): commands with
+``commands_seen``, rpm and volts with ``telemetry``. (No DroneCAN side: the ``dronecan``
+package decodes a frame in 0.15-0.3 ms, and reading a flight's DroneCAN bus after it doubled
+this file's time on a loaded 2-core machine, 73 s to 137 s; test_arducopter.py flies one,
+decoding while ArduCopter waits to arm.)
+
 Between PX4 and each bridge a UDP tap (a relay in a process of its own) records every
 datagram PX4 sends, stamped before it is forwarded: the test's own record of which motor
 output the bridge could have had at any moment. A pymavlink ground station on PX4's GCS port
@@ -46,7 +52,7 @@ import pytest
 from conftest import Observer, free_port
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc, ft
+from bridge.escs.family import EscTelemetry
 
 from ._px4 import (
     Px4,
@@ -58,9 +64,11 @@ from ._px4 import (
 from .conftest import (
     GroundStation,
     Process,
+    commands_by_motor,
     dialect,
+    esc_period_s,
+    frame_reader,
     measured,
-    motor_commands,
     start_bridge,
     start_sim,
     stream_answers,
@@ -85,7 +93,7 @@ PROTOCOL = {"aos": "ckesc", "sor": "ckesc", "ft": "ft"}
 COMPONENT = {"aos": 191, "sor": 192, "ft": 193}  # one component per bridge, told apart at the GCS
 FT_MAX_CURRENT_A = 20.0  # the bridge's default ft_max_current_a
 FT_CURRENT_STEPS = 100_000  # FT currents travel in 1e-5 A
-FT_POLE_PAIRS = 7  # the bridge's default: ESC_STATUS rpm = FT erpm / 7
+POLE_PAIRS = 7  # the bridge's default: ESC_STATUS rpm = erpm / 7 (FT reports erpm)
 # ESC_STATUS time_usec is PX4's boot clock near the bridge's snapshot (the bridge reads PX4's
 # clock from its SYSTEM_TIME/TIMESYNC), and the observer's stamps are the kernel's: a value may
 # be stamped on the bus a little after time_usec.
@@ -107,6 +115,9 @@ class Side:
     observer: Observer
     tap: UdpTap
     protocol: str = "ckesc"
+    period_s: float = 1 / 400
+    """The output period of each ESC (esc_period_s of the bridge's configuration): CKESC
+    400 Hz, FT 100 Hz per ESC (the defaults)."""
     bridge: Process | None = None
     frozen: bool = False
     """The flight is over: what was recorded up to now is all the checks read (cached)."""
@@ -114,11 +125,6 @@ class Side:
     sim: Process | None = None
     observer_drops: int = 0
     """Frames the kernel dropped for the observer (its receive buffer full) in the flight."""
-
-    @property
-    def period_s(self) -> float:
-        """The output period of each ESC: CKESC 400 Hz, FT 100 Hz per ESC (the defaults)."""
-        return 1 / 100 if self.protocol == "ft" else 1 / 400
 
 
 @dataclass
@@ -183,6 +189,7 @@ def flight(px4_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
                     stream_rate_hz=STREAM_RATE_HZ,
                     input_timeout_ms=round(INPUT_TIMEOUT_S * 1000),
                 )
+                side.period_s = esc_period_s(config)
                 # Nobody subscribes to Zenoh here: off, to leave the 2 cores to the flight.
                 side.bridge = start_bridge(
                     config,
@@ -382,8 +389,13 @@ def ft_current(pwm: float) -> int:
     return round(_fraction(pwm) * FT_MAX_CURRENT_A * FT_CURRENT_STEPS)
 
 
+EXPECTED = {"ckesc": throttle, "ft": ft_current}
+"""Each family's command for a PWM, in the steps :data:`STEPS` turns its read-back value into."""
+STEPS = {"ckesc": 1, "ft": FT_CURRENT_STEPS}
+
+
 def expected_command(side: Side, pwm: tuple[float, ...]) -> tuple[int, ...]:
-    scale = ft_current if side.protocol == "ft" else throttle
+    scale = EXPECTED[side.protocol]
     return tuple(scale(v) for v in pwm)
 
 
@@ -394,27 +406,43 @@ Command = tuple[int | None, ...]
 
 def _commands(side: Side) -> list[tuple[float, Command]]:
     """Every command frame the observer saw, in time order."""
-    if side.frozen and "commands" in side.cache:
-        return side.cache["commands"]  # type: ignore[no-any-return]
-    side.cache["commands"] = result = _read_commands(side)
+    return _bus(side)[0]
+
+
+def _bus(side: Side) -> tuple[list[tuple[float, Command]], list[tuple[float, EscTelemetry]]]:
+    if side.frozen and "bus" in side.cache:
+        return side.cache["bus"]  # type: ignore[no-any-return]
+    side.cache["bus"] = result = _read_bus(side)
     return result
 
 
-def _read_commands(side: Side) -> list[tuple[float, Command]]:
-    out = []
+def _read_bus(side: Side) -> tuple[list[tuple[float, Command]], list[tuple[float, EscTelemetry]]]:
+    """One pass over the observer's frames, in the order it got them (the stamps can put a
+    multi-frame transfer's frames a few µs out of order): the command frames, in time order,
+    and the telemetry, as the family reads them."""
+    commands: list[tuple[float, Command]] = []
+    telemetry: list[tuple[float, EscTelemetry]] = []
+    reader = frame_reader(side.protocol)
+    steps = STEPS[side.protocol]
     for ts, msg in list(side.observer.frames):
         try:
-            commands = motor_commands(side.protocol, msg)
+            frame = reader.decode(msg)
         except CodecError:
             continue  # counted by the bridge's and the observer's own checks
-        if commands is None or not all(0 <= m <= 3 for m in commands):
+        if frame is None:
             continue
-        # Throttles as sent; FT currents in the wire's 1e-5 A steps.
-        scale = FT_CURRENT_STEPS if side.protocol == "ft" else 1
-        command = tuple(round(commands[m] * scale) if m in commands else None for m in range(4))
-        out.append((ts, command))
-    out.sort(key=lambda x: x[0])
-    return out
+        by_motor = commands_by_motor(reader, frame)
+        if by_motor is None:
+            reading = reader.telemetry(frame)
+            if reading is not None:
+                telemetry.append((ts, reading))
+            continue
+        if not all(0 <= m <= 3 for m in by_motor):
+            continue
+        command = tuple(round(by_motor[m] * steps) if m in by_motor else None for m in range(4))
+        commands.append((ts, command))
+    commands.sort(key=lambda x: x[0])
+    return commands, telemetry
 
 
 def _matches(command: Command, expected: tuple[int, ...]) -> bool:
@@ -512,7 +540,7 @@ def _flight_window(fl: Flight) -> tuple[float, float, list[tuple[float, float]]]
     return ev["px4_ready"], ev["end"], skip
 
 
-@pytest.mark.parametrize("name", ["aos", "sor", "ft"], ids=SIDES)
+@pytest.mark.parametrize("name", SIDES)
 def test_stream_rate_is_near_the_asked_one(flight: Flight, name: str) -> None:
     """The bridge gets the motor outputs at a rate input_timeout_ms can live with, before
     and after the restart."""
@@ -531,7 +559,7 @@ def test_stream_rate_is_near_the_asked_one(flight: Flight, name: str) -> None:
     assert after >= MIN_STREAM_HZ, f"{name}: {after:.1f} Hz after the restart"
 
 
-@pytest.mark.parametrize("name", ["aos", "sor", "ft"], ids=SIDES)
+@pytest.mark.parametrize("name", SIDES)
 def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
     side = flight.sides[name]
     # An observer that lost frames cannot vouch for what was on the bus.
@@ -560,7 +588,7 @@ def test_every_frame_is_the_newest_output(flight: Flight, name: str) -> None:
     )
 
 
-@pytest.mark.parametrize("name", ["aos", "sor", "ft"], ids=SIDES)
+@pytest.mark.parametrize("name", SIDES)
 def test_no_zero_frames_while_armed_with_fresh_input(flight: Flight, name: str) -> None:
     start, end, skip = _flight_window(flight)
     verdict = judge(flight.sides[name], flight.px4.system_id, start, end, skip)
@@ -786,31 +814,21 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
 def _reported(
     side: Side,
 ) -> tuple[dict[int, list[tuple[float, int]]], dict[int, list[tuple[float, float]]]]:
-    """What each simulated ESC (motor 1..4) sent on the bus: (time, rpm) and (time, volts).
-    CKESC: MSG1 speed and MSG2 voltage; FT: real-time erpm / pole pairs (as the bridge turns
-    it into rpm) and battery voltage."""
+    """What each simulated ESC (motor 1..4) sent on the bus: (time, rpm) and (time, volts),
+    read as its family's neutral telemetry (erpm / pole pairs, as the bridge turns it into
+    rpm, for a family that reports erpm)."""
     rpms: dict[int, list[tuple[float, int]]] = {n: [] for n in range(1, 5)}
     volts: dict[int, list[tuple[float, float]]] = {n: [] for n in range(1, 5)}
-    for ts, msg in list(side.observer.frames):
-        try:
-            if side.protocol == "ft":
-                f = ft.decode(msg)
-                if f is None or f.esc_id not in rpms:
-                    continue
-                if isinstance(f.message, ft.RealtimeData1):
-                    rpms[f.esc_id].append((ts, int(f.message.erpm / FT_POLE_PAIRS)))
-                elif isinstance(f.message, ft.RealtimeData2):
-                    volts[f.esc_id].append((ts, f.message.battery_voltage_v))
-            else:
-                c = ckesc.decode(msg)
-                if c is None or c.source_node not in rpms:
-                    continue
-                if isinstance(c.message, ckesc.Msg1):
-                    rpms[c.source_node].append((ts, c.message.speed_rpm))
-                elif isinstance(c.message, ckesc.Msg2):
-                    volts[c.source_node].append((ts, c.message.voltage_v))
-        except CodecError:
+    for ts, telemetry in _bus(side)[1]:
+        if telemetry.node_id not in rpms:
             continue
+        rpm = telemetry.rpm
+        if rpm is None and telemetry.erpm is not None:
+            rpm = int(telemetry.erpm / POLE_PAIRS)
+        if rpm is not None:
+            rpms[telemetry.node_id].append((ts, rpm))
+        if telemetry.voltage_v is not None:
+            volts[telemetry.node_id].append((ts, telemetry.voltage_v))
     return rpms, volts
 
 
