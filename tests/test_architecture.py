@@ -8,8 +8,8 @@ which imports it in a fresh interpreter and looks at what came along:
 - the pure layers (ESC codecs, mixing, the ESC state and its Zenoh schema, the safety decision)
   import no I/O layer: not the output loop, the daemon, the CLI or the configuration, at any
   depth of a function;
-- the output loop's process imports nothing it does not run: no CLI, daemon (nor its health
-  reports and motor-test control), telemetry side (reader, state, publishers), monitor,
+- the output loop's process imports nothing it does not run: no CLI, daemon (its supervisor,
+  health reports, motor-test control), telemetry side (reader, state, publishers), monitor,
   simulator, demo, Zenoh or rich;
 - nothing outside ``bridge/escs/`` names an ESC family: the families are found through
   ``bridge.escs.registry``;
@@ -118,7 +118,7 @@ PURE = re.compile(
     r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
 )
 """The pure layers: no I/O of their own, so they run (and are tested) anywhere."""
-IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|output_loop|daemon|cli(\..*)?|config|config_file)$")
+IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|daemon(\..*)?|cli(\..*)?|config|config_file)$")
 
 
 @pytest.mark.parametrize("module", sorted(m for m in MODULES if PURE.match(m)))
@@ -137,7 +137,7 @@ def test_there_are_pure_layers_to_check() -> None:
 
 HOT_LOOP = "bridge.output.output_loop"
 NOT_ON_THE_HOT_LOOP = re.compile(
-    r"^(bridge\.(cli|daemon|health|motor_test_control|demo\w*|monitor|sim|telemetry"
+    r"^(bridge\.(cli|daemon|demo|monitor|sim|telemetry"
     r"|mavlink\.telemetry_out)"
     r"|zenoh|rich|matplotlib|dronecan)(\.|$)"
 )

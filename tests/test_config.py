@@ -8,11 +8,11 @@ from typing import Any
 
 import pytest
 
-from bridge import preflight
 from bridge.cli import build_parser as _parser
 from bridge.cli.run import run_config
 from bridge.config import build_config, documented_keys, with_esc_count
 from bridge.config_file import read_config_file
+from bridge.daemon import preflight
 from bridge.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent

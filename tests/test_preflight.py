@@ -1,4 +1,4 @@
-"""Start-up checks (bridge.preflight): each check on its own, each through `esc-bridge run
+"""Start-up checks (bridge.daemon.preflight): each check on its own, each through `esc-bridge run
 --check` as a subprocess (exit 2, the message names the thing, nothing opened and nothing sent),
 the shipped example configs, unreadable config files, a fuzz of the config reader, and `run`
 agreeing with `--check` on a table of good and bad configurations (`run` refusing the bad ones
@@ -24,13 +24,13 @@ from hypothesis import strategies as st
 
 from bridge.config import SECTIONS, BridgeConfig, build_config
 from bridge.config_file import read_config_file
+from bridge.daemon.preflight import SOURCE_VALID_RANGES, plan
 from bridge.errors import ConfigError
 from bridge.mavlink import CACHE_ENV
 from bridge.mavlink.endpoints import Endpoint, check_endpoints
 from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.loader import load_mixer
 from bridge.mixing.mixer import Mixer
-from bridge.preflight import SOURCE_VALID_RANGES, plan
 
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))
 ARM_TIMEOUT_S = 10.0  # a cold start spawns the output loop's interpreter first

@@ -58,7 +58,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from bridge import demo  # the simulated autopilot, rich and zenoh only for `demo`
+    # The simulated autopilot, rich and zenoh only for `demo`.
+    from bridge.demo import system as demo
 
     options = demo.DemoOptions(
         protocol=args.protocol,

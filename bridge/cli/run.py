@@ -180,7 +180,8 @@ def _run(args: argparse.Namespace) -> int:
     )
     # pymavlink logs every new stream and replayed timestamp at INFO; the link counts those.
     logging.getLogger("pymavlink").setLevel(logging.WARNING)
-    from bridge import daemon, preflight  # pymavlink and the loop are only loaded for `run`
+    # pymavlink and the loop are only loaded for `run`.
+    from bridge.daemon import preflight, supervisor
 
     config = run_config(args)
     # The same checks with and without --check: whatever run refuses, --check finds first.
@@ -195,4 +196,4 @@ def _run(args: argparse.Namespace) -> int:
         for line in checked.passed:
             print(f"  {line}")
         return EXIT_OK
-    return daemon.run(checked, record_dir=args.record, stop_signals=args.stop)
+    return supervisor.run(checked, record_dir=args.record, stop_signals=args.stop)

@@ -153,7 +153,7 @@ class MavlinkLink:
         ``uplink``: opens the autopilot's connection (an object with pymavlink's transport
         methods: ``fd``, ``recv``, ``write``, ``close``); None: pymavlink's transport for
         ``config.url``. The daemon passes the control loop's relay
-        (:class:`bridge.relay.MainConnection`): the loop owns the real link.
+        (:class:`bridge.mavlink.relay.MainConnection`): the loop owns the real link.
         ``needed_rate_hz``: the slowest output stream the control loop arms on (two inputs
         per input timeout); a slower one is reported loudly. 0: no such limit.
 

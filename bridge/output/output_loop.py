@@ -2,7 +2,7 @@
 
 One thread, in a process of its own where the bus allows it, with SCHED_FIFO priority when
 permitted, owns everything between the autopilot and the ESCs: the autopilot's link (read and
-decoded by :class:`~bridge.autopilot_input.AutopilotInput`, which mixes each input as it
+decoded by :class:`~bridge.output.autopilot_input.AutopilotInput`, which mixes each input as it
 arrives), the safety decision (:func:`bridge.output.safety.decide`) and the CAN transmit handle.
 Nothing else runs there, so nothing else can hold it up: telemetry, Zenoh, logging and ground
 station commands live in the main process, which may stall without consequence.
@@ -38,17 +38,17 @@ from dataclasses import dataclass
 
 import can
 
-from bridge.autopilot_input import AutopilotInput, InputSetup
 from bridge.can_io import Receive, is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import EscDriver, make_driver
+from bridge.mavlink.relay import LoopEnd
+from bridge.output.autopilot_input import AutopilotInput, InputSetup
 from bridge.output.busload import IMMEDIATE_MAX_RATE_FACTOR
 from bridge.output.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
 from bridge.output.motor_test import test_frames
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 from bridge.output.slew import SlewLimiter
-from bridge.relay import LoopEnd
 
 log = logging.getLogger(__name__)
 

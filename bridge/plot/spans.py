@@ -29,7 +29,8 @@ HANDOVER_S: Final = 0.25
 is the bridge taking the new arming state a moment before or after the tlog logs it, not
 shown; within an armed span every stop is shown, however short."""
 STATE_PREFIX: Final = "ESC out: "
-"""How the bridge's STATUSTEXTs about its output state begin (``bridge.health.STATE_REPORTS``)."""
+"""How the bridge's STATUSTEXTs about its output state begin
+(``bridge.daemon.health.STATE_REPORTS``)."""
 SEVERITY_CRITICAL: Final = 2
 """MAV_SEVERITY_CRITICAL: the bridge's failsafe states are reported so."""
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from bridge import preflight
 from bridge.config import build_config, with_esc_count
+from bridge.daemon import preflight
 from bridge.errors import ConfigError
 from bridge.escs.family import frame_bits
 from bridge.output.busload import bus_load

@@ -14,16 +14,16 @@ import can
 import pytest
 from conftest import Autopilot, free_port
 
-from bridge.autopilot_input import InputSetup
 from bridge.config import build_config
+from bridge.daemon.preflight import plan
 from bridge.escs import ckesc
 from bridge.escs.ckesc.driver import CkescDriver
+from bridge.mavlink.relay import relay_pair
+from bridge.output.autopilot_input import InputSetup
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.output_loop import CommandSelector, LoopSetup, OutputLoop
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits
 from bridge.output.slew import SlewLimiter
-from bridge.preflight import plan
-from bridge.relay import relay_pair
 
 MS = 1_000_000
 PWM = [1250, 1500, 1750, 2000]

@@ -141,7 +141,8 @@ def test_without_matplotlib_it_says_what_to_install(recorded: Path, tmp_path: Pa
 def test_nothing_but_the_plot_command_imports_matplotlib() -> None:
     code = (
         "import sys; from bridge.cli import build_parser; build_parser(); "
-        "import bridge.plot.flight, bridge.plot.page, bridge.daemon, bridge.demo; "
+        "import bridge.plot.flight, bridge.plot.page, bridge.daemon.supervisor; "
+        "import bridge.demo.system; "
         "print(sorted(m for m in sys.modules if m.startswith('matplotlib')))"
     )
     result = subprocess.run(

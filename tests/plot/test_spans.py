@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from bridge.health import STATE_REPORTS
+from bridge.daemon.health import STATE_REPORTS
+from bridge.daemon.severity import SEVERITY_CRITICAL
 from bridge.plot.recording import Heartbeat, StatusText
 from bridge.plot.spans import (
     ARMED,
@@ -20,7 +21,6 @@ from bridge.plot.spans import (
     bridge_state,
     stopped_while_armed,
 )
-from bridge.severity import SEVERITY_CRITICAL
 
 
 def beats(*pairs: tuple[float, bool]) -> list[Heartbeat]:

@@ -18,9 +18,9 @@ from typing import Any
 import pytest
 from pymavlink import mavutil
 
-from bridge import preflight
 from bridge.config import build_config
-from bridge.demo import (
+from bridge.daemon import preflight
+from bridge.demo.system import (
     DemoOptions,
     DemoPorts,
     bridge_args,

@@ -20,8 +20,8 @@ lines of output. The children run in sessions of their own so that the terminal'
 reaches only the demo, which stops them in that order.
 
 The only output is to the ``out`` and ``err`` streams the caller passes (the CLI: stdout and
-stderr). Beside this module: :mod:`bridge.demo_child` (a child process and its last lines) and
-:mod:`bridge.demo_watch` (what the demo watches of the bridge, and the summary).
+stderr). Beside this module: :mod:`bridge.demo.child` (a child process and its last lines) and
+:mod:`bridge.demo.watch` (what the demo watches of the bridge, and the summary).
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from bridge.config import BridgeConfig, build_config
-from bridge.demo_child import Child
-from bridge.demo_watch import (
+from bridge.demo.child import Child
+from bridge.demo.watch import (
     LOOPBACK,
     PREFIX,
     VEHICLE,

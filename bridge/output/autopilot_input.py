@@ -13,7 +13,7 @@ For every chunk read it:
 * decodes the configured motor-output message into the input vector, dates it by the
   autopilot's own clock (:class:`~bridge.mavlink.clock.AutopilotClock`: a packet that sat in a
   buffer is known to be old) and mixes it, refusing NaN, infinite and out-of-range channels;
-* relays every other frame to the main process (:mod:`bridge.relay`), which handles
+* relays every other frame to the main process (:mod:`bridge.mavlink.relay`), which handles
   everything else the autopilot sends; the outputs too when it records the link (it learns
   how many arrived from the loop's counters).
 
@@ -37,13 +37,13 @@ from bridge.mavlink.actuators import (
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
+from bridge.mavlink.relay import LoopEnd
 from bridge.mavlink.transport import open_transport
 from bridge.mavlink.transport.base import AutopilotTransport
 from bridge.mixing.definition import AXIS_VALID_RANGE, PWM_RANGE_US, MixerDefinition
 from bridge.mixing.mixer import AxisChannels, Mixer
 from bridge.output.mailbox import InputSnapshot, LoopStats
 from bridge.output.safety import ControlInputs
-from bridge.relay import LoopEnd
 
 # Chunks read per wake-up at most: enough to empty the socket at every tick whatever the
 # link carries (a queue that grew would make every input old), few enough that a flood on the

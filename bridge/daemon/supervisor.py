@@ -14,11 +14,11 @@ the loop to send safe values for ``shutdown_flush_ms`` and exits 0. If the loop 
 the safe values itself and exits 1, so that the service manager restarts the bridge; if this
 process dies, the loop notices at once (its relay reads end of file) and flushes by itself.
 A ground station's MAV_CMD_DO_MOTOR_TEST is decided in the main process
-(:mod:`bridge.motor_test_control`) and run by the loop while the autopilot is disarmed.
+(:mod:`bridge.daemon.motor_test_control`) and run by the loop while the autopilot is disarmed.
 
-Beside this module: :mod:`bridge.loop_runner` (where the loop runs, the safe values after its
-death), :mod:`bridge.motor_test_control`, :mod:`bridge.health` (what each loop state is reported
-as; the health and actuator records the Zenoh publisher takes).
+Beside this module: :mod:`bridge.daemon.loop_runner` (where the loop runs, the safe values
+after its death), :mod:`bridge.daemon.motor_test_control`, :mod:`bridge.daemon.health` (what
+each loop state is reported as; the health and actuator records the Zenoh publisher takes).
 """
 
 from __future__ import annotations
@@ -29,21 +29,21 @@ import threading
 import time
 from pathlib import Path
 
-from bridge.autopilot_input import InputSetup
 from bridge.can_io import SHAREABLE_INTERFACES
+from bridge.daemon.health import STATE_REPORTS, HealthReport
+from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
+from bridge.daemon.motor_test_control import MotorTestControl
+from bridge.daemon.preflight import Plan
+from bridge.daemon.severity import SEVERITY_CRITICAL, SEVERITY_WARNING
 from bridge.errors import LinkError
 from bridge.escs import registry
-from bridge.health import STATE_REPORTS, HealthReport
-from bridge.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.mavlink.link import MavlinkLink
-from bridge.motor_test_control import MotorTestControl
+from bridge.mavlink.relay import MainConnection, relay_pair
+from bridge.output.autopilot_input import InputSetup
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.motor_test import limits_for
 from bridge.output.output_loop import LoopSetup
 from bridge.output.safety import LoopState
-from bridge.preflight import Plan
-from bridge.relay import MainConnection, relay_pair
-from bridge.severity import SEVERITY_CRITICAL, SEVERITY_WARNING
 from bridge.stopping import StopSignals
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
@@ -288,7 +288,7 @@ def run(
     record_dir: str | Path | None = None,
     stop_signals: StopSignals | None = None,
 ) -> int:
-    """Run the bridge on a checked plan (:func:`bridge.preflight.plan`) until a stop signal;
+    """Run the bridge on a checked plan (:func:`bridge.daemon.preflight.plan`) until a stop signal;
     returns the process exit code.
 
     ``stop_signals``: the command line's, installed before anything else so that none is lost

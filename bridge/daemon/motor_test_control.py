@@ -12,6 +12,7 @@ from types import ModuleType
 from typing import Any
 
 from bridge.config import BridgeConfig
+from bridge.daemon.severity import SEVERITY_INFO, SEVERITY_NOTICE, SEVERITY_WARNING
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.motor_test import (
     Decision,
@@ -22,7 +23,6 @@ from bridge.output.motor_test import (
     decide,
 )
 from bridge.output.safety import LoopState
-from bridge.severity import SEVERITY_INFO, SEVERITY_NOTICE, SEVERITY_WARNING
 from bridge.telemetry.payload import MotorTestHealth
 
 log = logging.getLogger(__name__)

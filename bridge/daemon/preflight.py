@@ -88,7 +88,7 @@ _AXIS_INPUT_RANGE: Final = (-1.0, 1.0)  # ACTUATOR_CONTROL_TARGET's roll, pitch,
 @dataclass(frozen=True)
 class Plan:
     """A validated start-up plan: nothing is opened or sent until
-    :func:`bridge.daemon.run` executes it."""
+    :func:`bridge.daemon.supervisor.run` executes it."""
 
     config: BridgeConfig
     """The configuration, its ESC lists filled in (one entry per mixer output)."""

@@ -10,12 +10,17 @@ from __future__ import annotations
 import time
 
 from bridge.config import BridgeConfig
+from bridge.daemon.motor_test_control import MotorTestControl
+from bridge.daemon.severity import (
+    SEVERITY_CRITICAL,
+    SEVERITY_INFO,
+    SEVERITY_NOTICE,
+    SEVERITY_WARNING,
+)
 from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.definition import INPUT_NAMES
-from bridge.motor_test_control import MotorTestControl
 from bridge.output.mailbox import InputSnapshot, LoopStats
 from bridge.output.safety import SENDING_COMMANDS, LoopState
-from bridge.severity import SEVERITY_CRITICAL, SEVERITY_INFO, SEVERITY_NOTICE, SEVERITY_WARNING
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.payload import (
     ActuatorsInputPayload,
