@@ -23,13 +23,14 @@ from bridge.escs.family import (
 _S = ckesc.Msg1Status
 # CKESC MSG1 status bits -> ESC_FAILURE_FLAGS. MAVLink has no under-voltage, comms or self-test
 # bit: those are GENERIC (the ESC's raw status word is published beside the flags).
+# Plain ints: a Flag enum's ``&`` costs a microsecond per bit, on every MSG1 (50 Hz per ESC).
 STATUS_FAILURES: Final[tuple[tuple[int, int], ...]] = (
-    (_S.OVER_CURRENT, FAILURE_OVER_CURRENT),
-    (_S.OVER_VOLTAGE, FAILURE_OVER_VOLTAGE),
-    (_S.OVER_TEMPERATURE, FAILURE_OVER_TEMPERATURE),
-    (_S.UNDER_VOLTAGE, FAILURE_GENERIC),
-    (_S.COMMS_FAULT, FAILURE_GENERIC),
-    (_S.SELF_TEST_ERRORS, FAILURE_GENERIC),
+    (int(_S.OVER_CURRENT), FAILURE_OVER_CURRENT),
+    (int(_S.OVER_VOLTAGE), FAILURE_OVER_VOLTAGE),
+    (int(_S.OVER_TEMPERATURE), FAILURE_OVER_TEMPERATURE),
+    (int(_S.UNDER_VOLTAGE), FAILURE_GENERIC),
+    (int(_S.COMMS_FAULT), FAILURE_GENERIC),
+    (int(_S.SELF_TEST_ERRORS), FAILURE_GENERIC),
 )
 _SELF_TEST_FAULT: Final = frozenset({"self_test_fault"})
 _FAULT_CODE_2: Final = frozenset({"fault_code_2"})
