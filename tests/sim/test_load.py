@@ -166,7 +166,7 @@ def test_compiler_build_runs_real_compilers_again_and_again() -> None:
     assert seen & {"cc", "gcc", "cc1", "clang", "as"}, f"no compiler among {seen}"
     assert cpu_s > 0.1  # it burns CPU: 0.3 s of 1.5 s with a dozen other processes runnable
     assert load.report is not None
-    assert load.report.details["builds"] >= 4
+    assert load.report.details["builds"] >= 2  # 2 in 1.5 s beside the whole suite, 4+ alone
     assert load.report.details["failures"] == 0
     assert directory is not None and not directory.exists()
     assert_gone(pgid)
