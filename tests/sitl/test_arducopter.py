@@ -389,6 +389,21 @@ def wait_disarmed_at_gcs(flight: Flight, after: float, timeout_s: float, what: s
     return time.monotonic()
 
 
+def wait_motor_test_over(flight: Flight, test: MotorTest, what: str) -> float:
+    """When ``test`` ended at the ground station: the first disarmed HEARTBEAT after the armed
+    one it began with (ArduCopter reports armed during its own motor test). A disarmed
+    HEARTBEAT from before the test started must not end it: at load 8 one did, and the next
+    test was sent while this one still ran."""
+    gcs = flight.gcs
+    gcs.wait_for(
+        "HEARTBEAT", lambda m: from_autopilot(m) and armed(m), 5, test.sent, first=True, what=what
+    )
+    began = next(
+        t for t, m in gcs.received("HEARTBEAT", test.sent) if from_autopilot(m) and armed(m)
+    )
+    return wait_disarmed_at_gcs(flight, began, 5, what)
+
+
 def arm_and_take_off(flight: Flight, altitude_m: float) -> None:
     gcs = flight.gcs
     deadline = flight.events["restart"] + 120 if "restart" in flight.events else 0
@@ -463,11 +478,11 @@ def fly(flight: Flight, tap: MavTap) -> None:
     measure_heartbeat_rates(flight)
     test = motor_test(flight, "A", 3, 2.0)
     assert test.ack == mavlink.MAV_RESULT_ACCEPTED, f"motor test refused: {test.ack}"
-    test.end = wait_disarmed_at_gcs(flight, test.sent + 0.5, 5, "disarmed after motor test A")
+    test.end = wait_motor_test_over(flight, test, "motor test A at the ground station")
     message_interval(gcs, 0, 1)  # back to ArduCopter's usual HEARTBEAT on this link too
     test = motor_test(flight, "C", 4, 2.0)
     assert test.ack == mavlink.MAV_RESULT_ACCEPTED, f"motor test refused: {test.ack}"
-    test.end = wait_disarmed_at_gcs(flight, test.sent + 0.5, 5, "disarmed after motor test C")
+    test.end = wait_motor_test_over(flight, test, "motor test C at the ground station")
     message_interval(gcs, 33, 10)  # GLOBAL_POSITION_INT, for the altitude
 
     # 3. The flight, on the restarted autopilot, the stall in its hover.
