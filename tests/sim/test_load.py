@@ -155,18 +155,21 @@ def test_compiler_build_runs_real_compilers_again_and_again() -> None:
     with compiler_build(jobs=2, functions=3) as load:  # small files: many builds in a second
         seen: set[str] = set()
         before = load.cpu_seconds()
-        end = time.monotonic() + 1.5
-        while time.monotonic() < end:
+        # 1.5 s, or longer until it has had the CPU for a few builds: beside the whole suite it
+        # got 0.3 s of CPU in 1.5 s (2 builds); alone it gets that in a fraction of a second.
+        start = time.monotonic()
+        cpu_s = 0.0
+        while time.monotonic() - start < 1.5 or (cpu_s < 1.0 and time.monotonic() - start < 10):
             seen.update(comm(pid) for pid in load.pids())
             time.sleep(0.01)
-        cpu_s = load.cpu_seconds() - before
+            cpu_s = load.cpu_seconds() - before
         directory = load.workdir
         assert load.pgid is not None
         pgid = load.pgid
     assert seen & {"cc", "gcc", "cc1", "clang", "as"}, f"no compiler among {seen}"
-    assert cpu_s > 0.1  # it burns CPU: 0.3 s of 1.5 s with a dozen other processes runnable
+    assert cpu_s > 0.3
     assert load.report is not None
-    assert load.report.details["builds"] >= 2  # 2 in 1.5 s beside the whole suite, 4+ alone
+    assert load.report.details["builds"] >= 4
     assert load.report.details["failures"] == 0
     assert directory is not None and not directory.exists()
     assert_gone(pgid)
