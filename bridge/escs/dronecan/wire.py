@@ -1,15 +1,15 @@
 """What the bridge sends to DroneCAN ESCs, encoded by hand: ``uavcan.equipment.esc.RawCommand``
 and its own ``uavcan.protocol.NodeStatus``. Pure; the output loop's only DroneCAN import.
 
-Why by hand: the ``dronecan`` package (the reference serializer, used for everything received
-in :mod:`bridge.escs.dronecan.codec`) builds one RawCommand transfer in 26 µs for 4 ESCs and
-52 µs for 8 (``Transfer(payload=RawCommand(cmd=...)).to_frames()``, best of 5 with
-``python -m timeit`` on the development machine, an AMD EPYC core shared with other work); the
-precomputed encoder below takes 4.8 and 6.8 µs, the ``can.Message`` objects included. A
-Raspberry Pi core is several times slower than that one, so ``dronecan`` would spend a tenth or
-more of the 2.5 ms period at 400 Hz where the encoder spends about one percent, and importing
-``dronecan`` would cost the loop process 0.3 s of CPU and its DSDL tables: the loop imports
-nothing it does not run. The tests check this encoder against ``dronecan`` frame for frame.
+Why by hand: the ``dronecan`` package (the reference serializer, used for everything received in
+:mod:`bridge.escs.dronecan.codec`) builds a RawCommand transfer for 8 ESCs (3 frames) in about
+54 µs, the precomputed encoder below in about 9 µs, the ``can.Message`` objects included
+(``python bench/codec.py``: 17.9 and 3.1 µs a frame, medians of 7 runs, on the development
+machine's shared core). A Raspberry Pi core is several times slower than that one, so
+``dronecan`` would spend a tenth or more of the 2.5 ms period at 400 Hz where the encoder spends
+about one percent, and importing ``dronecan`` would cost the loop process 0.3 s of CPU and its
+DSDL tables: the loop imports nothing it does not run. The tests check this encoder against
+``dronecan`` frame for frame.
 
 The DSDL serialization rule both encoders follow (UAVCAN v0): fields are written into one bit
 stream, each byte filled from its top bit. A field of more than 8 bits is written as its
