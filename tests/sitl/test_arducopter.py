@@ -614,15 +614,29 @@ def armed_at(rig: Rig, t: float) -> bool:
     return i >= 0 and beats[i][1]
 
 
+def armed_throughout(rig: Rig, start: float, end: float) -> bool:
+    """Whether the autopilot was armed at ``start`` and the tap forwarded no disarmed HEARTBEAT
+    up to ``end``."""
+    beats = rig.tap.heartbeats
+    i = bisect.bisect_right([b[0] for b in beats], start) - 1
+    if i < 0 or not beats[i][1]:
+        return False
+    return all(armed for t, armed in beats[i + 1 :] if t <= end)
+
+
 def judged(rig: Rig, start: float, end: float) -> list[list[Command]]:
     """The frames sent in [start, end] that must carry the newest motor output: the autopilot
-    armed (its HEARTBEAT, forwarded a whole output period and ARMING_LATE_S before the frame:
-    the bridge obeys it, not the outputs) and the newest motor output fresh (forwarded within
-    FRESH_S)."""
+    armed throughout the time the frame may answer to (from a whole output period and
+    ARMING_LATE_S before it, to CLOCK_SKEW_S after it: the bridge obeys the HEARTBEAT, not the
+    outputs, and obeys a disarm at once; at the end of a motor test the bridge sent a zero 4 ms
+    after ArduCopter's last 1200 µs output, the disarm between them) and the newest motor
+    output fresh (forwarded within FRESH_S)."""
     out = []
     for frame in rig.commands:
         t = frame[0].t
-        if not start <= t <= end or not armed_at(rig, t - PERIOD_S - ARMING_LATE_S):
+        if not start <= t <= end:
+            continue
+        if not armed_throughout(rig, t - PERIOD_S - ARMING_LATE_S, t + CLOCK_SKEW_S):
             continue
         i = rig.newest_index(t)
         if i >= 0 and t - rig.tap.servo[i].t <= FRESH_S:
