@@ -84,7 +84,7 @@ FAILURE_GENERIC = 64
 def frame_bits(data_bytes: int) -> int:
     """Worst-case bits on the wire for an extended data frame carrying ``data_bytes`` (0..8):
     ``67 + 8n + floor((54 + 8n - 1) / 4)``, bit stuffing and the 3-bit interframe space
-    included (Davis, Burns, Bril, Lukkien 2007; PROTOCOLS.md §3).
+    included (Davis, Burns, Bril, Lukkien 2007; docs/protocols.md §1.3).
 
     Raises:
         ValueError: ``data_bytes`` outside 0..8.

@@ -1,7 +1,7 @@
 """UAVCAN v0 framing on classic CAN, shared by the two families that use it: CKESC (vendor
 types) and standard DroneCAN. The CAN ID's fields, transfer ID counters, tail bytes, the
 transfer CRC, splitting a payload into frames and putting frames back together. Pure: no I/O,
-clock or logging; no family is imported here (PROTOCOLS.md §1.1, §1.3; the DSDL's
+clock or logging; no family is imported here (docs/protocols.md §2; the DSDL's
 ``uavcan.protocol`` and libcanard for the multi-frame rules).
 
 The CAN ID (29 bits). A message (broadcast) frame's is priority (5 bits) · type ID (16) · 0 ·
@@ -74,7 +74,7 @@ def _check(what: str, value: object, allowed: range) -> int:
 
 @dataclass(frozen=True, slots=True)
 class CanId:
-    """The fields of a UAVCAN v0 CAN ID (PROTOCOLS.md §1.1).
+    """The fields of a UAVCAN v0 CAN ID (docs/protocols.md §2.1).
 
     ``type_id`` is the message type ID (16 bits) or the service type ID (8 bits);
     ``destination_node`` and ``is_request`` are ``None`` for message frames.

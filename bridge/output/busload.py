@@ -1,4 +1,5 @@
-"""Worst-case CAN bus load of a configuration (PROTOCOLS.md §3), checked before anything is sent.
+"""Worst-case CAN bus load of a configuration (docs/protocols.md §1.3), checked before anything
+is sent.
 
 The load is the sum over every periodic frame, the bridge's commands and the ESCs' telemetry at
 their configured rates, of bits x rate / bit rate; each ESC family counts its own frames

@@ -1,5 +1,5 @@
-"""bridge.output.busload: the worst-case bus load of a configuration (PROTOCOLS.md §3), and the
-refusal of one above the ceiling."""
+"""bridge.output.busload: the worst-case bus load of a configuration (docs/protocols.md §1.3),
+and the refusal of one above the ceiling."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def test_bus_load_above_ceiling_is_refused_with_numbers() -> None:
 
 
 def test_bus_load_arithmetic() -> None:
-    # PROTOCOLS.md §3: an 8-byte frame is at most 160 bits (160 µs at 1 Mbit/s).
+    # docs/protocols.md §1.3: an 8-byte frame is at most 160 bits (160 µs at 1 Mbit/s).
     assert frame_bits(8) == 160
     assert frame_bits(0) == 80
     config = with_esc_count(

@@ -1,8 +1,8 @@
 """What the bridge's CAN handles receive (bridge/can_io.py, bridge/telemetry/reader.py,
 bridge/telemetry/fanout.py).
 
-The filters are checked against the protocols' ID layouts (PROTOCOLS.md §1.1, §2.1) written out
-again here, through python-can's own matching on a ``virtual`` and a ``udp_multicast`` bus and
+The filters are checked against the protocols' ID layouts (docs/protocols.md §2.1, §4.2) written
+out again here, through python-can's own matching on a ``virtual`` and a ``udp_multicast`` bus and
 through the kernel's CAN_RAW_FILTER rule applied to python-can's packed socketcan filters (this
 kernel has no CAN, so no vcan). The load tests run on udp_multicast (hop_limit 0, a port of
 each test's own) with a sender process of their own that sends pre-packed python-can datagrams
@@ -61,7 +61,7 @@ def telemetry_filters(protocol: str, ids: Collection[int], read_back: bool) -> l
     return registry.family(protocol).reader_filters(ids, read_back)
 
 
-# The ID layouts, from PROTOCOLS.md rather than from bridge/can_io.py.
+# The ID layouts, from docs/protocols.md §2.1, §3.2 and §4.2 rather than from bridge/can_io.py.
 CKESC_TELEMETRY = range(20050, 20065)  # MSG1 .. MSG_EXP12
 CKESC_COMMANDS = (20100, 20101, 20102)  # RawCommand_14b, _12b, _10b
 FT_TELEMETRY = (0x0B, 0x0C, 0x0D)

@@ -3,8 +3,9 @@
 This package re-exports its codec's public names (``from bridge.escs import ckesc``); the
 family behind :class:`~bridge.escs.family.EscFamily` is :mod:`bridge.escs.ckesc.family`.
 
-The reference is ``PROTOCOLS.md`` §1 (the project's reading of the vendor's "CKESC UAVCAN
-Protocol 2.1"); section numbers "seed 4.4.x" below point into the vendor document. The codec
+The reference is ``docs/protocols.md`` §3 (the project's reading of the vendor's "CKESC UAVCAN
+Protocol 2.1"); section numbers "seed 4.4.x" below point into the vendor document, and the
+tables of §3.2 and §3.6 give each type's vendor section. The codec
 (``_wire``, ``_records``, ``_frame``, ``_messages``, ``_services``, ``_codec``) is pure: it imports
 only the standard library and ``can`` (for :class:`can.Message`), and has no I/O, clock or
 logging.

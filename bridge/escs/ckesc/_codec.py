@@ -184,7 +184,7 @@ def encode(frame: CkescFrame) -> can.Message:
 
 
 def default_priority(message: CkescMessage) -> int:
-    """The priority the seed gives the record's frame type (PROTOCOLS.md §1.3).
+    """The priority the seed gives the record's frame type (docs/protocols.md §3.2, §3.6).
 
     Raises:
         TypeError: ``message`` is not a CKESC record.

@@ -41,8 +41,8 @@ class CkescFrame:
 
 
 # --------------------------------------------------------------------------------------------
-# The frame type table (PROTOCOLS.md §1.3) and each type's payload layout, type by type.
-# An ``unpack`` takes the whole CAN data (its length already checked) and returns the record;
+# The frame type table (docs/protocols.md §3.2, §3.6) and each type's payload layout, type by
+# type. An ``unpack`` takes the whole CAN data (its length already checked) and returns the record;
 # a ``pack`` checks the record and returns the payload before the tail byte (the whole data for
 # the two types without a transfer ID). The registration rows are left unformatted so that each
 # reads as a table row: record, type ID, sender, DLC (tail byte included), priority, codec.

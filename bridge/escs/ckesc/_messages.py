@@ -314,8 +314,9 @@ _message(MsgExp12, TYPE_MSG_EXP12, _ESC, 8, _LOWEST,
          _unpack_exp12, _pack_exp12, has_transfer_id=False)
 # fmt: on
 
-# ---- Throttle commands (§1.4). The ``_bits_*`` helpers are shared with the hot-path encoders
-# at the end of the module; each takes 1..n throttles and sends the missing channels as 0.
+# ---- Throttle commands (docs/protocols.md §3.3). The ``_bits_*`` helpers are shared with the
+# hot-path encoders at the end of the module; each takes 1..n throttles and sends the missing
+# channels as 0.
 
 
 def _count_error(command: str, throttles: Sequence[int], most: int) -> ValueRangeError:

@@ -1,4 +1,5 @@
-"""CKESC payload records: one frozen dataclass per message and service type (PROTOCOLS.md §1.3)."""
+"""CKESC payload records: one frozen dataclass per message and service type
+(docs/protocols.md §3.2, §3.6)."""
 
 from __future__ import annotations
 
@@ -238,7 +239,8 @@ class MsgExp12:
 
 @dataclass(frozen=True, slots=True)
 class RawCommand14b:
-    """RawCommand_14b (20100): channels 1..4, 0..2000 each, UAVCAN v0 bit order (§1.4)."""
+    """RawCommand_14b (20100): channels 1..4, 0..2000 each, UAVCAN v0 bit order
+    (docs/protocols.md §3.3)."""
 
     throttles: tuple[int, int, int, int]
 

@@ -1,6 +1,6 @@
-"""CKESC wire constants, enumerations and range checks (PROTOCOLS.md §1.1, §1.3); the package
-docstring describes the protocol. The CAN ID, tail byte and transfer IDs are UAVCAN v0's, in
-:mod:`bridge.escs.uavcan_v0`."""
+"""CKESC wire constants, enumerations and range checks (docs/protocols.md §3.1, §3.2, §3.6);
+the package docstring describes the protocol. The CAN ID, tail byte and transfer IDs are UAVCAN
+v0's, in :mod:`bridge.escs.uavcan_v0`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from bridge.errors import (
 from bridge.escs.uavcan_v0 import MAX_NODE_ID, MAX_TRANSFER_ID, PRIORITY_LOWEST
 
 # --------------------------------------------------------------------------------------------
-# Protocol constants (PROTOCOLS.md §1.1, §1.3)
+# Protocol constants (docs/protocols.md §1.2, §3.1, §3.2, §3.6)
 
 HOST_NODE_ID: Final = 0
 """The bridge's own node ID; every CKESC request and throttle command comes from node 0."""

@@ -1,5 +1,5 @@
 """What CKESC puts on the bus: the kernel filters for its telemetry, and its worst-case load
-(PROTOCOLS.md §1.1, §1.3, §3)."""
+(docs/protocols.md §2.1, §3.2, §1.3)."""
 
 from __future__ import annotations
 

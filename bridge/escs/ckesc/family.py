@@ -35,13 +35,13 @@ def keys_of(config: BridgeConfig) -> CkescKeys:
 
 
 class CkescFamily:
-    """CKESC: UAVCAN v0 framing, the vendor's message and service types (PROTOCOLS.md §1)."""
+    """CKESC: UAVCAN v0 framing, the vendor's message and service types (docs/protocols.md §3)."""
 
     name = NAME
     title = "CKESC"
     node_ids = range(1, uavcan_v0.MAX_NODE_ID + 1)
     default_rate_hz = 400
-    # CKESC ships at 500 kbit/s (PROTOCOLS.md §1).
+    # CKESC ships at 500 kbit/s (docs/protocols.md §1.2).
     default_bitrate = 500_000
     learns_node_ids = True
     keys = CkescKeys

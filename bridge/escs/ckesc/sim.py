@@ -1,4 +1,4 @@
-"""A simulated CKESC ESC (PROTOCOLS.md §1): a pure state machine with an explicit clock.
+"""A simulated CKESC ESC (docs/protocols.md §3): a pure state machine with an explicit clock.
 
 Longer than 600 lines on purpose: :class:`SimCkesc` is one state machine whose frame
 handlers, services and report streams share its state (flash, clock, pending answers); cut

@@ -1,5 +1,5 @@
 """What DroneCAN puts on the bus: the kernel filters for its telemetry, and its worst-case load
-(PROTOCOLS.md §3's frame lengths; the transfers' frame counts from
+(docs/protocols.md §1.3's frame lengths; the transfers' frame counts, §2.5, from
 :mod:`bridge.escs.uavcan_v0`)."""
 
 from __future__ import annotations

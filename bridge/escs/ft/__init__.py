@@ -1,4 +1,4 @@
-"""The Flipsky FT family: its CAN codec (PROTOCOLS.md §2; vendor document seeds/000, V1.4).
+"""The Flipsky FT family: its CAN codec (docs/protocols.md §4; the vendor's document V1.4).
 
 This package re-exports the codec's public names (``from bridge.escs import ft``); the family
 behind :class:`~bridge.escs.family.EscFamily` is :mod:`bridge.escs.ft.family`. The codec

@@ -1,4 +1,4 @@
-"""FT encoding and decoding: records to frames and back (PROTOCOLS.md §2)."""
+"""FT encoding and decoding: records to frames and back (docs/protocols.md §4)."""
 
 from __future__ import annotations
 

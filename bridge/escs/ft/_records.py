@@ -1,4 +1,4 @@
-"""FT constants, the CRC-16, enumerations, records and CAN IDs (PROTOCOLS.md §2); the package
+"""FT constants, the CRC-16, enumerations, records and CAN IDs (docs/protocols.md §4); the package
 docstring describes the protocol."""
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ class Command(IntEnum):
     SET_DUTY_GEAR = 0x17
     SET_ERPM_GEAR = 0x18
     SET_POSITION_GEAR = 0x19
-    # The seed's headings say 20H/21H; its enum (26, 27) and PROTOCOLS.md §2.2 say 0x1A/0x1B.
+    # The seed's headings say 20H/21H; its enum says 26, 27 (docs/protocols.md §4.9).
     SET_CURRENT_BRAKE = 0x1A
     SET_CURRENT_BRAKE_PERCENT = 0x1B
 

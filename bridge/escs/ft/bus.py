@@ -1,5 +1,5 @@
 """What FT puts on the bus: the kernel filters for its telemetry, and its worst-case load
-(PROTOCOLS.md §2.1, §2.4, §3)."""
+(docs/protocols.md §4.2, §4.6, §1.3)."""
 
 from __future__ import annotations
 

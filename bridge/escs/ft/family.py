@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 NAME: Final = "ft"
 COMMAND_TIMEOUT_MS: Final = 450
-"""The ESC drops a command not repeated within this (PROTOCOLS.md §2.2)."""
+"""The ESC drops a command not repeated within this (docs/protocols.md §4.4)."""
 MIN_REFRESHES_PER_TIMEOUT: Final = 4
 """A command must reach each ESC at least this many times within its timeout, so that a few
 lost frames or a stalled cycle never let the ESC time out mid-flight."""

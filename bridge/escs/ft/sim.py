@@ -1,4 +1,4 @@
-"""A simulated Flipsky FT ESC (PROTOCOLS.md §2): a pure state machine with an explicit clock.
+"""A simulated Flipsky FT ESC (docs/protocols.md §4): a pure state machine with an explicit clock.
 
 It obeys every FT command addressed to its ESC ID, with or without CRC, and sends the three
 real-time telemetry frames every 10 ms while a command is in force. Frames go through the
@@ -21,7 +21,7 @@ What each command does to the motor (:class:`~bridge.sim.motor.Motor`):
 
 Decisions where the spec is silent
 ----------------------------------
-- A command is in force for 450 ms after it arrives (PROTOCOLS.md §2.2); at 450 ms it is
+- A command is in force for 450 ms after it arrives (docs/protocols.md §4.4); at 450 ms it is
   dropped and the motor released (``motor.set_current(0)``: it coasts down with its lag).
 - Telemetry is sent only while a command is in force: an ESC that was never commanded, or
   whose command timed out, is quiet until the next command, which restarts telemetry at
@@ -81,9 +81,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 COMMAND_TIMEOUT_S: Final = 0.450
-"""A command not repeated within this is dropped (PROTOCOLS.md §2.2)."""
+"""A command not repeated within this is dropped (docs/protocols.md §4.4)."""
 TELEMETRY_PERIOD_S: Final = 0.010
-"""Each of the three real-time frames is sent this often (PROTOCOLS.md §2.4)."""
+"""Each of the three real-time frames is sent this often (docs/protocols.md §4.6)."""
 OVER_TEMPERATURE_C: Final = 300.0
 """MOSFET temperature reported under the over_temperature fault (fits i16 x 100)."""
 OVER_CURRENT_A: Final = 5000.0

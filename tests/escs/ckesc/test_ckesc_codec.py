@@ -1,9 +1,10 @@
-"""CKESC codec: PROTOCOLS.md §1.5 vectors, dronecan cross-checks, round trips, malformed frames
-(the UAVCAN v0 CAN ID, tail byte and transfer IDs are tested in tests/escs/test_uavcan_v0.py).
+"""CKESC codec: docs/protocols.md §3.9 vectors, dronecan cross-checks, round trips, malformed
+frames (the UAVCAN v0 CAN ID, tail byte and transfer IDs are tested in
+tests/escs/test_uavcan_v0.py).
 
-The ``SPEC`` table below is written from PROTOCOLS.md §1.3 and the seed, independently of the
-module's own table, so the tests check the module's type IDs, DLCs, priorities, directions and
-field ranges against the spec rather than against themselves.
+The ``SPEC`` table below is written from docs/protocols.md §3.2, §3.6 and the seed,
+independently of the module's own table, so the tests check the module's type IDs, DLCs,
+priorities, directions and field ranges against the spec rather than against themselves.
 """
 
 from __future__ import annotations
@@ -468,7 +469,7 @@ def valid_data(record: type) -> tuple[int, bytes]:
 
 
 # --------------------------------------------------------------------------------------------
-# PROTOCOLS.md §1.5
+# docs/protocols.md §3.9
 
 
 VECTORS = [
@@ -490,7 +491,7 @@ VECTORS = [
         "64 20 c3 12 64 f4 a1 0f",
         id="10b",
     ),
-    # The spec gives only the ID; the data follow seed 4.4.20 (option, colour, blink, tail).
+    # Another Set LED than §3.9's: the data follow §3.6 (option, colour, blink, tail).
     pytest.param(
         CkescFrame(24, 0, 5, 0, SetLedRequest(save=True, color=LedColor.RED, blink_hz=2)),
         0x18D48580,

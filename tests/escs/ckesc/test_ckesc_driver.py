@@ -51,7 +51,7 @@ def test_ckesc_10b_and_14b() -> None:
     assert frame.message.throttles == (100, 200, 300, 400, 500, 1000)
     msg = CkescDriver("14b", [1, 2, 3, 4]).tick_frames(0, [0.5, 0.5, 0.5, 0.5])[0]
     assert msg.arbitration_id == 0x004E8400
-    assert bytes(msg.data[:7]) == bytes.fromhex("e80fa03e80fa03")  # PROTOCOLS.md §1.5
+    assert bytes(msg.data[:7]) == bytes.fromhex("e80fa03e80fa03")  # docs/protocols.md §3.9
 
 
 @given(st.lists(ANY_FLOAT, min_size=8, max_size=8))

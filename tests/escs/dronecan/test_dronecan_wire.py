@@ -49,7 +49,7 @@ def test_known_frames() -> None:
     encoder = wire.RawCommandEncoder(4, wire.DEFAULT_NODE_ID)
     (frame,) = encoder.frames([1000, 1000, 1000, 1000])
     assert frame.arbitration_id == 0x0704060A
-    # The same bit order as CKESC's RawCommand_14b (PROTOCOLS.md §1.4), tail byte 0xC0.
+    # The same bit order as CKESC's RawCommand_14b (docs/protocols.md §2.6, §3.3), tail 0xC0.
     assert bytes(frame.data) == bytes.fromhex("e80fa03e80fa03c0")
     five = wire.RawCommandEncoder(5, 10).frames([8191, 0, -1, -8192, 4096])
     assert [len(f.data) for f in five] == [8, 5]

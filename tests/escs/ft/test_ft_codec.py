@@ -1,4 +1,4 @@
-"""Tests for the Flipsky FT codec (bridge/escs/ft/) against PROTOCOLS.md §2.
+"""Tests for the Flipsky FT codec (bridge/escs/ft/) against docs/protocols.md §4.
 
 Expected bytes are built here independently of the codec: ``struct`` for the fields and the
 ``crc`` package (bit-by-bit, not table-driven) for CRC-16/MODBUS.
@@ -94,7 +94,7 @@ RAW_LIMIT: dict[Command, int | None] = {
     C.SET_CURRENT_BRAKE: None,
     C.SET_CURRENT_BRAKE_PERCENT: 100_000,
 }
-# Per command: does the frame carry a gear byte, a CRC, and its DLC (PROTOCOLS.md §2.2).
+# Per command: does the frame carry a gear byte, a CRC, and its DLC (docs/protocols.md §4.3).
 GEARED = {C(c) for c in (0x00, 0x02, 0x04, 0x12, 0x13, 0x15, 0x16, 0x17, 0x18, 0x19)}
 WITH_CRC = {C(c) for c in (0x00, 0x01, 0x02, 0x03, 0x04, 0x05, 0x12, 0x13, 0x14)}
 DLC = {c: 4 + (c in GEARED) + 2 * (c in WITH_CRC) for c in Command}
@@ -171,7 +171,7 @@ def value_of(record: FtCommand) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
-# Known frames: PROTOCOLS.md §2.5 first, then one per command and telemetry type. The bytes
+# Known frames: docs/protocols.md §4.8 first, then one per command and telemetry type. The bytes
 # were produced with struct and the crc package, not with the codec.
 
 KNOWN: list[tuple[FtFrame, int, str]] = [
@@ -247,7 +247,8 @@ def test_crc_matches_reference_package(data: bytes) -> None:
 
 
 def test_command_ids_are_the_seeds_enum() -> None:
-    # Seed §2.4 enum: 0..5, 18..27 are commands (16 of them), 11..13 telemetry.
+    # The vendor document's enum (docs/protocols.md §4.3, §4.9): 0..5, 18..27 are commands (16
+    # of them), 11..13 telemetry.
     assert sorted(Command) == [*range(0, 6), *range(18, 28)]
     assert sorted(Telemetry) == [11, 12, 13]
     assert [int(g) for g in Gear] == [0, 1, 2, 3, 4]
