@@ -1,7 +1,8 @@
-"""The README and docs/ hold what they show: links lead to files and headings that exist, every
-``esc-bridge`` command in a ``sh`` block parses with the real command line, every ``sh`` block
-is valid shell, every TOML block parses (a configuration through the bridge's own loader), and
-the files of docs/hardware.md are what systemd and the Raspberry Pi firmware read."""
+"""The README, docs/ and the config/ and mixers/ READMEs hold what they show: links lead to
+files and headings that exist, every ``esc-bridge`` command in a ``sh`` block parses with the
+real command line, every ``sh`` block is valid shell, every TOML block parses (a configuration
+through the bridge's own loader), and the files of docs/hardware.md are what systemd and the
+Raspberry Pi firmware read."""
 
 from __future__ import annotations
 
@@ -25,7 +26,12 @@ from bridge.config import build_config, documented_keys
 from bridge.config_file import read_config_file
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [
+    ROOT / "README.md",
+    *sorted((ROOT / "docs").glob("*.md")),
+    ROOT / "config" / "README.md",
+    ROOT / "mixers" / "README.md",
+]
 HARDWARE = ROOT / "docs" / "hardware.md"
 
 # Pages other parts of issue 14 write in the same merge: linked from here, not yet in this tree.
