@@ -340,6 +340,34 @@ def test_the_can_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
     assert unit.name not in output  # an unknown key or a bad value is only a warning
 
 
+# `ip link set DEVICE type can` options, from iproute2 6.1's `ip link help can`.
+IP_LINK_CAN_OPTIONS = {"bitrate", "sample-point", "restart-ms", "listen-only", "termination"}
+
+
+def test_the_ip_link_commands_use_options_iproute2_knows() -> None:
+    commands = [
+        words[words.index("link") :]
+        for block in _blocks_of("sh")
+        for words in _commands(block.text)
+        if "ip" in words and "type" in words and "can" in words
+    ]
+    assert len(commands) >= 3
+    used = set()
+    for words in commands:
+        assert words[:3] == ["link", "set", "can0"], words
+        options = words[words.index("can") + 1 :]
+        used |= set(options[::2])
+        assert all(value.replace(".", "").isdigit() for value in options[1::2]), words
+    assert used <= IP_LINK_CAN_OPTIONS, used - IP_LINK_CAN_OPTIONS
+    ip = shutil.which("ip")
+    if ip is not None:  # and this machine's iproute2 still knows them
+        usage = subprocess.run(
+            [ip, "link", "help", "can"], capture_output=True, text=True, check=False
+        )
+        for option in used:
+            assert f"[ {option} " in usage.stdout + usage.stderr, option
+
+
 def test_one_bit_rate_on_the_hardware_page() -> None:
     text = HARDWARE.read_text(encoding="utf-8")
     rates = {int(rate) for rate in re.findall(r"\bbitrate (\d+)", text)}
