@@ -226,6 +226,18 @@ def test_every_bridge_command_shown_parses(block: Block, argv: list[str]) -> Non
     assert _problem(argv) is None, f"{block.where()}: esc-bridge {' '.join(argv)}"
 
 
+def test_the_repository_files_the_commands_name_exist() -> None:
+    named = {
+        word
+        for block in SH_BLOCKS
+        for words in _commands(block.text)
+        for word in words
+        if re.match(r"(config|mixers|autopilot|bench|tests)/", word)
+    }
+    assert "config/quad-ckesc.toml" in named
+    assert [name for name in sorted(named) if not (ROOT / name).exists()] == []
+
+
 def test_a_wrong_command_is_caught() -> None:
     (words,) = _commands("sudo .venv/bin/esc-bridge esc spin --motor 1 --bitrat 500000  # typo\n")
     argv = _bridge_argv(words)
