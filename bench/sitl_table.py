@@ -1,4 +1,5 @@
-"""The bridge against the real autopilots: the README's table, from the SITL tests' own flights.
+"""The bridge against the real autopilots: docs/simulation.md's table, from the SITL tests'
+own flights.
 
 Run: ``python bench/sitl_table.py [--flights 3] [--json FILE]``
 

@@ -1,4 +1,4 @@
-"""Every safety case of README "Safe values", end to end through `esc-bridge run`.
+"""Every safety case of docs/running.md, "Safe values", end to end through `esc-bridge run`.
 
 The real daemon as a subprocess (its own process group), a pymavlink autopilot on loopback UDP
 (a real-time process for the cases about load), and a udp_multicast observer decoding what

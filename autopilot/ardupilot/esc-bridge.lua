@@ -18,7 +18,7 @@
   Install: copy this file into the autopilot's scripts directory (APM/scripts on the SD card;
   scripts/ beside a SITL's working directory), set SCR_ENABLE 1, reboot, then set the ESCB_
   parameters below (they appear after the first boot with the script) and reboot again or
-  restart scripting. The README's "ArduPilot: ESC telemetry into the autopilot" has the steps
+  restart scripting. docs/telemetry.md, "ArduPilot: ESC telemetry into the autopilot", has the steps
   and the bridge's rate to set.
 
   Parameters (table key 49, prefix ESCB_):

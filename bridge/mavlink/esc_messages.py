@@ -5,7 +5,7 @@ clamped to its field's range and NaN/None turned into the field's "unknown". The
 sets each kind of connection carries by default, and what they cost in bytes per second (for
 ``run --check``). :mod:`bridge.mavlink.telemetry_out` sends them.
 
-Encoding choices the MAVLink definitions leave open (README, "ESC telemetry over MAVLink"):
+Encoding choices the MAVLink definitions leave open (docs/telemetry.md, "MAVLink out"):
 
 * An offline ESC (no frame within the table's timeout) reports its measurements as unknown:
   rpm, voltage, current 0 and temperature INT16_MAX (ESC_INFO) or 0 (ESC_TELEMETRY), so a

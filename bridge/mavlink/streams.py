@@ -3,7 +3,7 @@
 An autopilot streams SERVO_OUTPUT_RAW (or ACTUATOR_OUTPUT_STATUS, ...) and HEARTBEAT at rates
 of its own choosing until someone asks otherwise with MAV_CMD_SET_MESSAGE_INTERVAL, and each
 asker learns only from the COMMAND_ACK and from what then arrives whether it worked. Seen on
-the real autopilots (README "Against real autopilots"):
+the real autopilots (docs/simulation.md, "Against the real autopilots, measured"):
 
 * ArduCopter DENIES a rate faster than its main loop allows (400 Hz on a 400 Hz loop) and
   says why in a STATUSTEXT; it accepts 200 Hz.

@@ -11,7 +11,7 @@ key (under the prefix)     record
 ``actuators/output``       :class:`ActuatorsOutputPayload`
 =========================  ==========================
 
-A record's fields are the JSON object's names, in the order published (README: "Zenoh out");
+A record's fields are the JSON object's names, in the order published (docs/telemetry.md);
 nested records are nested objects, tuples are arrays. ``encode()`` gives the bytes published
 (compact JSON, UTF-8; NaN and infinities refused); ``Record.decode(payload)`` gives the record
 back or raises :class:`~bridge.errors.PayloadError` naming the key and the field. A reader on the

@@ -11,8 +11,8 @@ on the bus is the *n*-th entry of ``[escs] ids``.
 
 Failure flags follow MAVLink's ESC_FAILURE_FLAGS; where they come from is the ESC's status
 word (as its family maps it, :attr:`~bridge.escs.family.EscTelemetry.status_failures`), its
-fault counters, plus the configured limits of :class:`TelemetryLimits` (README, "ESC
-telemetry").
+fault counters, plus the configured limits of :class:`TelemetryLimits` (docs/telemetry.md,
+"Failure flags").
 """
 
 from __future__ import annotations

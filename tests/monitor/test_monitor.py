@@ -328,7 +328,7 @@ def test_ctrl_c_ends_cleanly_with_a_final_table(can_port: int) -> None:
 
 
 def esc_dict(motor: int, **values: Any) -> dict[str, Any]:
-    """A telemetry object as the bridge publishes it (README: Zenoh out), written out."""
+    """A telemetry object as the bridge publishes it (docs/telemetry.md: Zenoh out), written out."""
     esc: dict[str, Any] = {
         "motor": motor,
         "node_id": motor,

@@ -2,8 +2,8 @@
 
 The system under test is the loop's own per-tick code (:class:`CommandSelector`: the safety
 decision, motor tests, the slew limiter, the fault handling) driving a real CKESC driver; its
-frames are decoded back to throttles. The model is written from the rules in README "Safe
-values", apart from the code: what each motor may receive at each moment. A frame is unsafe
+frames are decoded back to throttles. The model is written from the rules in docs/running.md,
+"Safe values", apart from the code: what each motor may receive at each moment. A frame is unsafe
 when a motor gets a throttle the model does not allow: anything but 0 in a safe state, anything
 but the newest valid input's command while running, anything but the test throttle on the
 motor under test (and 0 on the others) during a motor test.
@@ -14,8 +14,8 @@ time before it arrives (late delivery, a stalled process); a stream of inputs at
 disarmed; silence (time passing: staleness, HEARTBEAT loss); a motor test or its stop; a stop
 signal or the main process's death (the loop flushes); ticks. Two drivers: hypothesis's state
 machine (shrinks a failure to its shortest sequence) and a seeded random walk that runs many
-more sequences cheaply (``ESC_BRIDGE_MODEL_SEQUENCES``, default 10 000; the README's claim of
-10^5 is measured with that variable set).
+more sequences cheaply (``ESC_BRIDGE_MODEL_SEQUENCES``, default 10 000; docs/development.md's
+claim of 10^5 is measured with that variable set).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ class Model:
     command: list[float] | None = None  # the newest input's fractions; None: invalid
     test: MotorTest | None = None
     test_cancelled: bool = False
-    # The stream's mean interval, as README "Safe values" defines it: each new interval moves
+    # The stream's mean interval, as docs/running.md defines it: each new interval moves
     # it 1/8 of the way; it counts after 3 intervals.
     intervals: int = 0
     interval_ns: int = 0

@@ -1,5 +1,5 @@
-"""The README's SITL recipe's files, with an ArduCopter stand-in where no SITL build is needed:
-config/sitl.toml, `esc-bridge run` and `esc-bridge sim` as separate processes on one
+"""The SITL recipe's files (docs/simulation.md), with an ArduCopter stand-in where no SITL build
+is needed: config/sitl.toml, `esc-bridge run` and `esc-bridge sim` as separate processes on one
 udp_multicast bus (tests/sitl flies the real autopilots).
 
 The stand-in behaves as ArduCopter SITL does (../shared/sitl/README.md): MAVLink on a TCP

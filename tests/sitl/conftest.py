@@ -69,7 +69,7 @@ ARDUPILOT_UDP_PORTS = (5501,)
 
 # --------------------------------------------------------------------------------------------
 # Measurements: the tests record numbers here and the session prints them at its end, for the
-# README's table (``pytest tests/sitl -s`` or the summary at the end of any run).
+# table in docs/simulation.md (``pytest tests/sitl -s`` or the summary at the end of any run).
 
 MEASUREMENTS: dict[str, Any] = {}
 REPORT_ENV = "ESC_BRIDGE_SITL_REPORT"

@@ -7,7 +7,7 @@ What runs (loopback only, see conftest.py): ArduCopter SITL (quad, real time) wi
 ``INS_HNTCH_MODE 3``, ``INS_HNTCH_REF 1``) and logging while disarmed (``LOG_DISARMED 1``: the
 run is motor tests, which need no GPS lock); one CKESC bridge on SERIAL1 sending
 ESC_TELEMETRY_1_TO_4 to the autopilot at the rate under test (``[mavlink]
-autopilot_messages``: the README's 10 Hz, and the 2 Hz the bridge picks for ArduPilot by
+autopilot_messages``: docs/telemetry.md's 10 Hz, and the 2 Hz the bridge picks for ArduPilot by
 default), four simulated ESCs and an observer on its CAN bus; a ground station on SERIAL0
 asking ArduCopter for its own ESC_TELEMETRY_1_TO_4 at 10 Hz. The module-scoped ``run``
 fixture (about 15 s per rate) does:
@@ -64,7 +64,7 @@ from .conftest import (
 
 SCRIPT = ROOT / "autopilot" / "ardupilot" / "esc-bridge.lua"
 RATES_HZ = (10.0, 2.0)
-"""ESC_TELEMETRY_1_TO_4 on the autopilot link: the README's setting for the script, and the
+"""ESC_TELEMETRY_1_TO_4 on the autopilot link: docs/telemetry.md's setting for the script, and the
 bridge's default for ArduPilot."""
 AP_TELEMETRY_HZ = 10.0
 """ArduCopter's own ESC_TELEMETRY_1_TO_4, asked on the ground station's link."""

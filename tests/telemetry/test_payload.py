@@ -1,6 +1,6 @@
 """The Zenoh schema (bridge/telemetry/payload.py): every key's record round-trips through its
-JSON, its field names are the README's ("Zenoh out"), and garbage is refused naming the key and
-the field."""
+JSON, its field names are those of docs/telemetry.md ("Zenoh out"), and garbage is refused
+naming the key and the field."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from bridge.telemetry.payload import (
 )
 from bridge.telemetry.state import EscTable
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+TELEMETRY_PAGE = Path(__file__).resolve().parents[2] / "docs" / "telemetry.md"
 
 
 def test_there_is_a_sample_of_every_key() -> None:
@@ -94,12 +94,12 @@ def test_a_snapshot_makes_the_same_json_as_before() -> None:
     assert (status.time_unix_ms, status.count, status.online) == (17, 1, 1)
 
 
-# -- the README's field names ----------------------------------------------------------------
+# -- the documented field names (docs/telemetry.md) -------------------------------------------
 
 
 def _zenoh_section() -> str:
-    text = README.read_text(encoding="utf-8")
-    return text[text.index("### Zenoh out") : text.index("#### Latest values and liveliness")]
+    text = TELEMETRY_PAGE.read_text(encoding="utf-8")
+    return text[text.index("## Zenoh out") : text.index("### Latest values and liveliness")]
 
 
 def _paragraph(section: str, key: str) -> str:
@@ -122,7 +122,7 @@ def _keys(record: Payload) -> set[str]:
     return set(value)
 
 
-def test_telemetry_fields_are_the_readmes_table() -> None:
+def test_telemetry_fields_are_the_documented_table() -> None:
     section = _zenoh_section()
     table = section[section.index("`esc/<n>/telemetry`:") : section.index("`esc/<n>/info`:")]
     documented = set(re.findall(r"^\| `([a-z_]+)`(?:, `([a-z_]+)`)? \|", table, re.MULTILINE))
@@ -145,7 +145,7 @@ def test_telemetry_fields_are_the_readmes_table() -> None:
         ("bridge/health", HEALTH, {"session_up", "published", "dropped"}),
     ],
 )
-def test_each_keys_top_level_fields_are_the_readmes(
+def test_each_keys_top_level_fields_are_the_documented_ones(
     key: str, record: Payload, extra: set[str]
 ) -> None:
     documented = _names(_paragraph(_zenoh_section(), key)) - {key.split("/")[-1]}

@@ -2,7 +2,7 @@
 read back (:class:`~bridge.escs.family.CommandSeen`): the family's side of the ESC state.
 
 Failure flags follow MAVLink's ESC_FAILURE_FLAGS; a MSG1 status word maps through
-:data:`STATUS_FAILURES` (README, "ESC telemetry"). MSG_EXP9's self-test fault and MSG_EXP10's
+:data:`STATUS_FAILURES` (docs/telemetry.md). MSG_EXP9's self-test fault and MSG_EXP10's
 fault code are counters whose non-zero value is a fault (``fault_counters``).
 """
 
