@@ -31,7 +31,6 @@ from pymavlink import mavutil
 from bridge.mavlink import load_dialect
 
 ROOT = Path(__file__).resolve().parent.parent
-SHARED_DATA = ROOT.parent / "shared" / "data"
 MULTICAST_GROUP = "239.74.163.2"
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 
