@@ -38,6 +38,7 @@ import pytest
 from conftest import MULTICAST_GROUP, ROOT, Observer, free_port
 
 UNIT = ROOT / "config" / "esc-bridge.service"
+PAGE = ROOT / "docs" / "service.md"
 INSTALLED_VENV_BIN = "/opt/esc-bridge/.venv/bin/"
 INSTALLED_CONFIG = "/etc/esc-bridge/config.toml"
 VENV_BIN = Path(sys.executable).parent
@@ -117,9 +118,16 @@ def unused_uid() -> int:
     raise AssertionError("no unused uid between 61000 and 61999")
 
 
-def exec_start(config: Path) -> list[str]:
-    """The unit's ExecStart with the venv and the configuration file put in place (only)."""
-    argv = shlex.split(one("ExecStart"))
+def page_drop_in() -> str:
+    """The ExecStart that docs/service.md's recording drop-in puts in place of the unit's."""
+    block = re.search(r"```ini\n\[Service\]\nExecStart=\n(ExecStart=.*)\n```", PAGE.read_text())
+    assert block is not None, f"{PAGE}: no [Service] drop-in that clears ExecStart"
+    return block[1].removeprefix("ExecStart=")
+
+
+def exec_start(line: str, config: Path) -> list[str]:
+    """An ExecStart line with the venv and the configuration file put in place (only)."""
+    argv = shlex.split(line)
     assert argv[0].startswith(INSTALLED_VENV_BIN), argv
     assert argv.count(INSTALLED_CONFIG) == 1, argv
     argv[0] = str(VENV_BIN / argv[0].removeprefix(INSTALLED_VENV_BIN))
@@ -241,7 +249,10 @@ def test_the_unit_says_what_the_sandbox_reproduces() -> None:
 
 
 @needs_root
-def test_exec_start_runs_as_a_system_user_in_the_units_sandbox(work: Path) -> None:
+@pytest.mark.parametrize("recording", [False, True], ids=["unit", "page-record-drop-in"])
+def test_exec_start_runs_as_a_system_user_in_the_units_sandbox(work: Path, recording: bool) -> None:
+    """The unit's ExecStart, and the one docs/service.md's drop-in makes it to record flights
+    into LogsDirectory=."""
     can_port, mavlink_port = free_port(), free_port()
     config = work / "config.toml"
     config.write_text(
@@ -253,7 +264,8 @@ def test_exec_start_runs_as_a_system_user_in_the_units_sandbox(work: Path) -> No
     config.chmod(0o644)
     uid = unused_uid()
     sandbox = Sandbox.of_unit(work, uid, state_directories=True)
-    argv = exec_start(Path(sandbox.inside(config)))
+    line = page_drop_in() if recording else one("ExecStart")
+    argv = exec_start(line, Path(sandbox.inside(config)))
     observer = Observer(can_port)
     proc = subprocess.Popen(
         sandbox.command(argv),
@@ -281,6 +293,26 @@ def test_exec_start_runs_as_a_system_user_in_the_units_sandbox(work: Path) -> No
     # The dialect went to CacheDirectory= (systemd's $CACHE_DIRECTORY), owned by the user.
     cached = list((work / "var-cache" / one("CacheDirectory") / "mavlink").glob("esc_bridge-*.py"))
     assert len(cached) == 1 and cached[0].stat().st_uid == uid, cached
+    recorded = sorted(p.suffix for p in (work / "var-log" / one("LogsDirectory")).iterdir())
+    assert recorded == ([".log", ".tlog"] if recording else []), recorded
+
+
+def test_the_page_shows_the_units_lines() -> None:
+    """docs/service.md: the device lines to edit are the unit's, the drop-in only adds
+    --record into LogsDirectory=, and every key its table explains is in the unit."""
+    page = PAGE.read_text()
+    unit = read_unit(UNIT)
+    for key in ("Wants", "After"):
+        assert f"\n{key}={unit['Unit'][key][0]}\n" in page, key
+    logs = f"/var/log/{one('LogsDirectory')}"
+    assert page_drop_in() == f"{one('ExecStart')} --record {logs}"
+    explained = set(re.findall(r"^\| `(\w+)=", page, re.M))
+    explained |= set(re.findall(r"`, `(\w+)=", page))
+    keys = {key for section in unit.values() for key in section}
+    assert explained and explained <= keys, explained - keys
+    assert keys - explained <= {"Description", "Documentation", "Type", "WantedBy"}, (
+        keys - explained
+    )
 
 
 @needs_root
