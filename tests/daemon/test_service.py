@@ -30,6 +30,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -221,14 +222,7 @@ class Sandbox:
 @pytest.fixture
 def work() -> Iterator[Path]:
     """A directory the sandbox's user may read (pytest's tmp_path is root's alone)."""
-    path = Path(
-        subprocess.run(
-            ["mktemp", "-d", "/tmp/esc-bridge-service-XXXXXX"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    )
+    path = Path(tempfile.mkdtemp(prefix="esc-bridge-service-"))
     path.chmod(0o755)
     yield path
     shutil.rmtree(path)
