@@ -334,7 +334,8 @@ def _check_dialect() -> str:
             f"MAVLink dialect: {exc}; expected a dialect esc-bridge can generate and load "
             f"(${CACHE_ENV} names its cache directory)"
         ) from exc
-    return f"MAVLink dialect loads ({dialect.__file__})"
+    where = getattr(dialect, "__file__", None) or "generated in memory: no writable cache"
+    return f"MAVLink dialect loads ({where})"
 
 
 def _check_record_dir(directory: Path) -> str:

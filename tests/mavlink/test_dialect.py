@@ -327,22 +327,76 @@ def test_key_depends_on_content() -> None:
 
 def test_cache_root_precedence(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.delenv("CACHE_DIRECTORY", raising=False)
     monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
     assert cache_root() == Path.home() / ".cache" / "esc-bridge"
     monkeypatch.setenv("XDG_CACHE_HOME", "relative/ignored")
     assert cache_root() == Path.home() / ".cache" / "esc-bridge"
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert cache_root() == tmp_path / "xdg" / "esc-bridge"
+    # systemd's CacheDirectory= (several directories are ":"-separated; the first is ours).
+    monkeypatch.setenv("CACHE_DIRECTORY", f"{tmp_path / 'systemd'}:{tmp_path / 'other'}")
+    assert cache_root() == tmp_path / "systemd"
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "mine"))
     assert cache_root() == tmp_path / "mine"
+
+
+def test_systemd_cache_directory_keeps_the_dialect(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.setenv("CACHE_DIRECTORY", str(tmp_path / "var-cache"))
+    path = Path(load_dialect().__file__ or "")
+    assert path.parent == tmp_path / "var-cache" / "mavlink"
+    assert path.name == f"esc_bridge-{dialect_key(OWN_XML.read_bytes())}.py"
+
+
+IN_MEMORY_PROBE = """
+import logging, sys
+logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(message)s")
+from bridge.mavlink import load_dialect
+m = load_dialect()
+print(getattr(m, "__file__", None), m.MAVLink_esc_status_message.crc_extra, m.DIALECT)
+"""
+
+
+def test_without_a_writable_cache_the_dialect_is_made_in_memory(tmp_path: Path) -> None:
+    """A system user whose home cannot hold a cache (here: $HOME is a file) still gets the
+    dialect, and nothing is written: not beside the home, not in the temporary directory."""
+    home = tmp_path / "home-is-a-file"
+    home.write_text("")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in (CACHE_ENV, "XDG_CACHE_HOME")}
+    env.pop("CACHE_DIRECTORY", None)
+    env.update(HOME=str(home), TMPDIR=str(tmp))
+    done = subprocess.run(
+        [sys.executable, "-c", IN_MEMORY_PROBE],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    lines = done.stdout.splitlines()
+    assert lines[-1] == "None 10 esc_bridge"
+    assert any(
+        line.startswith("cannot write the MAVLink dialect cache ") and "Not a directory" in line
+        for line in lines
+    ), lines
+    assert any(line.startswith("generated the MAVLink dialect in memory in ") for line in lines)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["home-is-a-file", "tmp"]
 
 
 def test_default_cache_is_outside_the_repository(monkeypatch: pytest.MonkeyPatch) -> None:
     """Generated code must never land in the source tree, whatever the working directory."""
     monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.delenv("CACHE_DIRECTORY", raising=False)
     monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
     repo = Path(__file__).resolve().parents[2]
-    assert not cache_root().resolve().is_relative_to(repo)
+    root = cache_root()
+    assert root is not None
+    assert not root.resolve().is_relative_to(repo)
 
 
 # --- errors ---------------------------------------------------------------------------
