@@ -36,9 +36,7 @@ HARDWARE = ROOT / "docs" / "hardware.md"
 
 # Pages other parts of issue 14 write in the same merge: linked from here, not yet in this tree.
 # (To be removed at the merge, once they exist.)
-WRITTEN_ELSEWHERE = frozenset(
-    {"docs/troubleshooting.md"}
-)
+WRITTEN_ELSEWHERE = frozenset({"docs/troubleshooting.md"})
 
 # The bridge's accepted bit rates (`[can] bitrate`), and the one the docs bring the bus up at.
 BIT_RATE = 500_000
