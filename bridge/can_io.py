@@ -24,6 +24,7 @@ from typing import Final, Literal
 import can
 from can.typechecking import CanFilter
 
+from bridge.can_interface import assess, bring_up_command, read_link
 from bridge.config import CanConfig
 from bridge.errors import ConfigError, LinkError
 
@@ -122,13 +123,12 @@ def open_bus(
             f"[can] interface {config.interface!r} is not available: {exc}; expected one of {known}"
         ) from exc
     except (can.CanError, OSError, ValueError, TypeError) as exc:
+        hint = ""
+        if config.interface == "socketcan":
+            found = assess(read_link(config.channel), config.channel, bitrate)
+            hint = f" ({found.refusal or bring_up_command(config.channel, bitrate)})"
         raise LinkError(
-            f"cannot open CAN bus {config.interface}:{config.channel}: {exc}"
-            + (
-                " (on Linux: `ip link set can0 up type can bitrate 1000000`, or vcan0 for tests)"
-                if config.interface == "socketcan"
-                else ""
-            )
+            f"cannot open CAN bus {config.interface}:{config.channel}: {exc}{hint}"
         ) from exc
     silence = receive == "none" or (receive == "telemetry" and not filters)
     if silence and not _stop_receiving(bus, config.channel):

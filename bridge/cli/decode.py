@@ -31,8 +31,9 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         type=_node_list,
         default=None,
         metavar="N,N,...",
-        help="CKESC node IDs of your ESCs: frames from other nodes that reuse CKESC type IDs "
-        "(other vendors' DroneCAN messages) are then reported as not understood",
+        help="your ESCs' IDs on the bus (node or ESC IDs): where a family shares its ID space "
+        "with other devices (UAVCAN v0 vendors' messages), a frame from another node is then "
+        "reported as not understood",
     )
     decode.add_argument("--json", action="store_true", help="print JSON lines instead of text")
     decode.set_defaults(handler=_decode)
