@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
+from bridge.daemon.absence import AbsenceWatch, EscsHeard
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.daemon.motor_test_control import MotorTestControl
@@ -122,6 +123,7 @@ class Supervisor:
         )
         self.health_report.fanout = self.fanout
         self._stop = threading.Event()
+        self._absence = AbsenceWatch(config, time.monotonic_ns(), log.log)
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
         self._errors_logged_at = 0.0
@@ -210,7 +212,20 @@ class Supervisor:
 
     def _watch(self) -> None:
         stats = self.stats
-        self.link.note_outputs(stats["input_outputs"], time.monotonic_ns())
+        now_ns = time.monotonic_ns()
+        self.link.note_outputs(stats["input_outputs"], now_ns)
+        reader = self.fanout.reader
+        self._absence.check(
+            now_ns,
+            self.link.stats,
+            None
+            if reader is None
+            else lambda: EscsHeard(
+                self.fanout.table.snapshot(now_ns),
+                reader.stats.frames,
+                self.fanout.table.unknown_frames,
+            ),
+        )
         self.health_report.sample()
         state = LoopState(stats["state"])
         if state != self._reported_state and state in STATE_REPORTS:
