@@ -6,10 +6,11 @@ import argparse
 import dataclasses
 import enum
 import json
+import sys
 from typing import Any, cast
 
 from bridge.capture import BadLine, CaptureItem, CaptureSummary, DecodedFrame, decode_capture
-from bridge.cli._common import EXIT_OK
+from bridge.cli._common import EXIT_FAILED, EXIT_OK
 from bridge.escs import registry
 
 
@@ -54,14 +55,25 @@ def _node_list(text: str) -> frozenset[int]:
 def _decode(args: argparse.Namespace) -> int:
     summary = CaptureSummary()
     show = _json_line if args.json else _text_line
+    decoded = 0
     for item in decode_capture(args.file, args.protocol, args.nodes):
         summary.add(item)
+        decoded += isinstance(item, DecodedFrame)
         print(show(item))
     if args.json:
         print(json.dumps({"summary": summary.as_dict()}))
     else:
         print(_summary_text(summary))
-    return EXIT_OK
+    if decoded:
+        return EXIT_OK
+    protocol = "any ESC protocol" if args.protocol == "auto" else f"--protocol {args.protocol}"
+    print(
+        f"esc-bridge: error: nothing in {args.file} decoded as {protocol}: {summary.frames} "
+        f"frames read, {summary.bad_lines} line{'' if summary.bad_lines == 1 else 's'} that "
+        f"{'is' if summary.bad_lines == 1 else 'are'} no frame",
+        file=sys.stderr,
+    )
+    return EXIT_FAILED
 
 
 def _text_line(item: CaptureItem) -> str:
@@ -73,7 +85,7 @@ def _text_line(item: CaptureItem) -> str:
         fields = " ".join(f"{k}={_text_value(v)}" for k, v in _message_fields(item))
         return f"{head}  {item.protocol:<5} node {item.frame.node_id:<3} {item.type_name}  {fields}"
     if item.error is None:
-        return f"{head}  not understood"
+        return f"{head}  not understood" + (f": {item.why}" if item.why else "")
     return f"{head}  {item.protocol:<5} {type(item.error).__name__}: {item.error}"
 
 
@@ -107,6 +119,8 @@ def _json_line(item: CaptureItem) -> str:
         }
     elif item.error is None:
         record["error"] = "NotOurs"
+        if item.why:
+            record["detail"] = item.why
     else:
         record |= {"error": type(item.error).__name__, "detail": str(item.error)}
     return json.dumps(record)
