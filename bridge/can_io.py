@@ -79,6 +79,7 @@ def open_bus(
     *,
     receive: Receive = "all",
     filters: Sequence[CanFilter] | None = None,
+    explain: bool = True,
 ) -> can.BusABC:
     """Open the configured bus; ``receive`` says what the handle gets from it.
 
@@ -101,6 +102,10 @@ def open_bus(
       and a minimal SO_RCVBUF still queues one datagram and counts every other as dropped).
       Other interfaces: nothing is done; frames queue for the handle as before (a ``virtual``
       handle's queue grows without bound if it is never read).
+
+    ``explain``: when a SocketCAN bus cannot be opened, read the interface's state (a run of
+    ``ip``, :mod:`bridge.can_interface`) to say what is missing; False (the output loop, which
+    must not start processes) gives only the command that brings the interface up.
 
     Raises:
         ConfigError: the interface is not one python-can knows.
@@ -125,8 +130,9 @@ def open_bus(
     except (can.CanError, OSError, ValueError, TypeError) as exc:
         hint = ""
         if config.interface == "socketcan":
-            found = assess(read_link(config.channel), config.channel, bitrate)
-            hint = f" ({found.refusal or bring_up_command(config.channel, bitrate)})"
+            found = assess(read_link(config.channel), config.channel, bitrate) if explain else None
+            refusal = None if found is None else found.refusal
+            hint = f" ({refusal or bring_up_command(config.channel, bitrate)})"
         raise LinkError(
             f"cannot open CAN bus {config.interface}:{config.channel}: {exc}{hint}"
         ) from exc

@@ -6,6 +6,9 @@ from __future__ import annotations
 import pytest
 
 from bridge.can_interface import LinkState, assess, parse_ip_link, read_link
+from bridge.can_io import open_bus
+from bridge.config import CanConfig
+from bridge.errors import LinkError
 
 # An MCP2515 HAT's controller, configured and up.
 CAN_UP_500K = (
@@ -135,3 +138,15 @@ def test_read_link_asks_the_system() -> None:
         "SocketCAN interface lo is not a CAN interface (it is loopback); expected a CAN "
         "controller such as can0 ([can] channel)"
     )
+
+
+def test_a_bus_that_cannot_be_opened_says_what_is_missing() -> None:
+    # This machine has no SocketCAN; the output loop's reopening (explain=False) starts no `ip`.
+    for explain, hint in (
+        (True, "(SocketCAN interface nocan8 does not exist; expected a CAN interface: "),
+        (False, "(sudo ip link set nocan8 up type can bitrate 250000)"),
+    ):
+        with pytest.raises(LinkError) as caught:
+            open_bus(CanConfig(channel="nocan8"), 250_000, explain=explain)
+        assert str(caught.value).startswith("cannot open CAN bus socketcan:nocan8: ")
+        assert hint in str(caught.value)

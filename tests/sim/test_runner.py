@@ -388,10 +388,15 @@ def test_cli_sim_bad_arguments(
 
 
 def test_cli_sim_bus_that_cannot_be_opened(capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(["sim", "--escs", "1", "--can-interface", "socketcan", "--can-channel", "nocan9"])
+    code = main(
+        ["sim", "--escs", "1", "--can-interface", "socketcan", "--can-channel", "nocan9"]
+        + ["--bitrate", "250k"]
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("esc-bridge: cannot open CAN bus socketcan:nocan9")
+    # What is missing, named by the channel given (this machine has no such interface).
+    assert "(SocketCAN interface nocan9 does not exist; expected a CAN interface: " in err
     assert err.count("\n") == 1
 
 
