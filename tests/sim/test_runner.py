@@ -388,10 +388,8 @@ def test_cli_sim_bad_arguments(
 
 
 def test_cli_sim_bus_that_cannot_be_opened(capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(
-        ["sim", "--escs", "1", "--can-interface", "socketcan", "--can-channel", "nocan9"]
-        + ["--bitrate", "250k"]
-    )
+    args = ["--can-interface", "socketcan", "--can-channel", "nocan9", "--bitrate", "250k"]
+    code = main(["sim", "--escs", "1", *args])
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("esc-bridge: cannot open CAN bus socketcan:nocan9")
