@@ -17,7 +17,8 @@ from bridge.escs import registry
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     decode = commands.add_parser(
         "decode",
-        help="decode a CAN capture (candump -L .log, .asc, .blf, .csv, .trc, .mf4, .db)",
+        help="decode a CAN capture (a candump .log, -L or as printed; .asc, .blf, .csv, .trc, "
+        ".mf4, .db)",
         description="Decode a CAN capture into one line per frame, then a summary.",
     )
     decode.add_argument("file", help="the capture; its format is taken from the file suffix")
