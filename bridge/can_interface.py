@@ -62,15 +62,14 @@ def parse_ip_link(text: str, name: str) -> LinkState:
         links = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"`ip -json link` output is not JSON: {exc}") from None
-    link = (
-        next(
-            (item for item in links if isinstance(item, dict) and item.get("ifname") == name), None
-        )
-        if isinstance(links, list)
-        else None
-    )
-    if link is None:
+    named = [
+        item
+        for item in (links if isinstance(links, list) else ())
+        if isinstance(item, dict) and item.get("ifname") == name
+    ]
+    if not named:
         raise ValueError(f"`ip -json link` output has no interface {name!r}")
+    link = named[0]
     info = _table(link.get("linkinfo"))
     data = _table(info.get("info_data"))
     bitrate = _table(data.get("bittiming")).get("bitrate")
@@ -97,9 +96,8 @@ def _text(value: Any) -> str | None:
 def read_link(name: str) -> LinkState | None:
     """The system's state of interface ``name``; None when it cannot be read (no ``ip``
     command, or output it does not understand)."""
-    ip = shutil.which("ip") or next(
-        (path for path in ("/usr/sbin/ip", "/sbin/ip") if shutil.which(path)), None
-    )
+    # A service's PATH may lack the sbin directories, where Debian keeps ip.
+    ip = shutil.which("ip") or shutil.which("ip", path="/usr/sbin:/sbin")
     if ip is None:
         return None
     try:
