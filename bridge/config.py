@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from bridge.bitrate import parse_bitrate
 from bridge.config_checks import (
-    bitrate,
+    bitrate_value,
     boolean,
     check,
     choice,
@@ -312,7 +312,7 @@ class CanConfig:
     channel: str = key("can0", string, "python-can channel (socketcan: the netdev, e.g. can0)")
     bitrate: int | None = key(
         None,
-        optional(bitrate),
+        optional(bitrate_value),
         'bus bit rate, bit/s: 500000, "500k" or "1M" (default: the ESC family\'s factory rate); '
         "checked against a SocketCAN interface's at start, used for the bus-load check, set by "
         "interfaces that can",

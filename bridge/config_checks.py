@@ -104,7 +104,7 @@ def string_list(v: Any) -> str | None:
     return None if ok else "a list of non-empty strings"
 
 
-def bitrate(v: Any) -> str | None:
+def bitrate_value(v: Any) -> str | None:
     """A CAN bit rate as :func:`bridge.bitrate.parse_bitrate` reads it (``500000``, ``"500k"``,
     ``"1M"``)."""
     try:
