@@ -123,7 +123,7 @@ class Supervisor:
         )
         self.health_report.fanout = self.fanout
         self._stop = threading.Event()
-        self._absence = AbsenceWatch(config, time.monotonic_ns(), log.log)
+        self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
         self._errors_logged_at = 0.0
@@ -155,6 +155,8 @@ class Supervisor:
             self.runner.start()
             self._await_loop_start()
             self.fanout.start()
+            # Counted from here: the loop's process may take seconds to start on a busy machine.
+            self._absence = AbsenceWatch(config, time.monotonic_ns(), log.log)
             while not self._stop.is_set():
                 if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
                     return self._loop_died()
@@ -215,17 +217,18 @@ class Supervisor:
         now_ns = time.monotonic_ns()
         self.link.note_outputs(stats["input_outputs"], now_ns)
         reader = self.fanout.reader
-        self._absence.check(
-            now_ns,
-            self.link.stats,
-            None
-            if reader is None
-            else lambda: EscsHeard(
-                self.fanout.table.snapshot(now_ns),
-                reader.stats.frames,
-                self.fanout.table.unknown_frames,
-            ),
-        )
+        if self._absence is not None:
+            self._absence.check(
+                now_ns,
+                self.link.stats,
+                None
+                if reader is None
+                else lambda: EscsHeard(
+                    self.fanout.table.snapshot(now_ns),
+                    reader.stats.frames,
+                    self.fanout.table.unknown_frames,
+                ),
+            )
         self.health_report.sample()
         state = LoopState(stats["state"])
         if state != self._reported_state and state in STATE_REPORTS:
