@@ -24,6 +24,7 @@ from typing import Final, Literal
 import can
 from can.typechecking import CanFilter
 
+from bridge.can_interface import assess, bring_up_command, read_link
 from bridge.config import CanConfig
 from bridge.errors import ConfigError, LinkError
 
@@ -78,6 +79,7 @@ def open_bus(
     *,
     receive: Receive = "all",
     filters: Sequence[CanFilter] | None = None,
+    explain: bool = True,
 ) -> can.BusABC:
     """Open the configured bus; ``receive`` says what the handle gets from it.
 
@@ -101,6 +103,10 @@ def open_bus(
       Other interfaces: nothing is done; frames queue for the handle as before (a ``virtual``
       handle's queue grows without bound if it is never read).
 
+    ``explain``: when a SocketCAN bus cannot be opened, read the interface's state (a run of
+    ``ip``, :mod:`bridge.can_interface`) to say what is missing; False (the output loop, which
+    must not start processes) gives only the command that brings the interface up.
+
     Raises:
         ConfigError: the interface is not one python-can knows.
         LinkError: the bus could not be opened (no such device, no permission, ...).
@@ -122,13 +128,13 @@ def open_bus(
             f"[can] interface {config.interface!r} is not available: {exc}; expected one of {known}"
         ) from exc
     except (can.CanError, OSError, ValueError, TypeError) as exc:
+        hint = ""
+        if config.interface == "socketcan":
+            found = assess(read_link(config.channel), config.channel, bitrate) if explain else None
+            refusal = None if found is None else found.refusal
+            hint = f" ({refusal or bring_up_command(config.channel, bitrate)})"
         raise LinkError(
-            f"cannot open CAN bus {config.interface}:{config.channel}: {exc}"
-            + (
-                " (on Linux: `ip link set can0 up type can bitrate 1000000`, or vcan0 for tests)"
-                if config.interface == "socketcan"
-                else ""
-            )
+            f"cannot open CAN bus {config.interface}:{config.channel}: {exc}{hint}"
         ) from exc
     silence = receive == "none" or (receive == "telemetry" and not filters)
     if silence and not _stop_receiving(bus, config.channel):

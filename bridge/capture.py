@@ -6,13 +6,20 @@ source that counts lines: when a reader raises, the line is reported as :class:`
 fresh reader resumes after it, with the file's header replayed so that header state (the ASC
 number base, the TRC column layout, the CSV header row) is the same as before.
 Binary formats (.blf, .mf4, .db) cannot be resynchronised: an error there ends the read.
+
+A ``.log`` may hold ``candump -L`` lines (``(1712345678.123456) can0 1F4E5201#B90B4C04``, what
+python-can reads) or candump's default output, as printed on a terminal (``  can0  1F4E5201
+[4]  B9 0B 4C 04``, with or without ``-t`` timestamps); the latter are rewritten into the former
+line by line (:func:`candump_line`), so one capture may even mix them.
 """
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import TextIO, cast
 
@@ -28,6 +35,47 @@ from bridge.escs.family import EscFamily, EscFrame
 TEXT_HEADER_LINES: dict[str, int | None] = {".log": 0, ".csv": 1, ".asc": None, ".trc": None}
 TEXT_SUFFIXES = frozenset(TEXT_HEADER_LINES)
 BINARY_SUFFIXES = frozenset({".blf", ".mf4", ".db"})
+
+CANDUMP_FORMS = (
+    "expected a candump line: `candump -L` such as '(1712345678.123456) can0 1F4E5201#B90B4C04', "
+    "or candump's default such as '  can0  1F4E5201   [4]  B9 0B 4C 04'"
+)
+"""What a ``.log`` line may be, for the message about one that is neither."""
+
+# candump's default line: an optional "(time)" (-t a, d, z: seconds; -t A: a date and time),
+# the interface, "RX - -"-style flags with -x, the ID (3 hex digits: 11-bit, 8: 29-bit), the
+# length in brackets ([08] for CAN FD), then the bytes or "remote request", and with -a the
+# bytes as ASCII in quotes.
+_CANDUMP = re.compile(
+    r"\s*(?:\((?P<time>[^)]*)\)\s+)?(?P<channel>\S+)\s+(?:(?:RX|TX)\s+\S+\s+\S+\s+)?"
+    r"(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})\s+\[(?P<length>\d{1,2})\]"
+    r"(?P<rest>(?:\s+[0-9A-Fa-f]{2})*|\s+remote request)\s*(?:'.*')?\s*"
+)
+
+
+def candump_line(line: str) -> str | None:
+    """A line of candump's default output as a ``candump -L`` line (the time 0 when it has
+    none, or seconds since the epoch for -t A's local date and time); None when it is not one
+    (or its bytes are not as many as its length says)."""
+    match = _CANDUMP.fullmatch(line.rstrip("\r\n"))
+    if match is None:
+        return None
+    stamp = match["time"] or "0.0"
+    if " " in stamp:  # -t A: "2024-04-05 19:30:12.123456", local time
+        try:
+            stamp = f"{datetime.strptime(stamp, '%Y-%m-%d %H:%M:%S.%f').timestamp():.6f}"
+        except ValueError:
+            return None
+    rest = match["rest"].strip()
+    if rest == "remote request":
+        payload = f"R{int(match['length'])}"
+    else:
+        payload = rest.replace(" ", "")
+        if len(payload) != 2 * int(match["length"]):  # candump prints every byte it counts
+            return None
+        if match["length"].startswith("0") or len(payload) > 16:  # CAN FD: "##<flags><data>"
+            payload = "#0" + payload
+    return f"({stamp}) {match['channel']} {match['id']}#{payload}\n"
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,8 +94,11 @@ class _LineSource:
     replayed to a fresh reader; replayed lines come first and are not counted again.
     """
 
-    def __init__(self, file: TextIO, header_lines: int | None) -> None:
+    def __init__(
+        self, file: TextIO, header_lines: int | None, translate: Callable[[str], str] | None = None
+    ) -> None:
         self._file = file
+        self._translate = translate
         self._replay: list[str] = []
         # Formats with a fixed header know it at once; ASC and TRC only at their first frame.
         self._kept: list[str] | None = [] if header_lines is None else None
@@ -79,7 +130,7 @@ class _LineSource:
         self.last_line = line
         if self._kept is not None:
             self._kept.append(line)
-        return line
+        return line if self._translate is None else self._translate(line)
 
     def close(self) -> None:
         """python-can readers close their file when done; the caller owns this one."""
@@ -116,8 +167,13 @@ def _text_reader(suffix: str, source: _LineSource) -> MessageReader:
 
 
 def _read_text(path: Path, suffix: str) -> Iterator[can.Message | BadLine]:
+    candump = suffix == ".log"
     with path.open(encoding="utf-8", errors="replace") as file:
-        source = _LineSource(file, TEXT_HEADER_LINES[suffix])
+        source = _LineSource(
+            file,
+            TEXT_HEADER_LINES[suffix],
+            (lambda line: candump_line(line) or line) if candump else None,
+        )
         while True:
             try:
                 for msg in _text_reader(suffix, source):
@@ -125,7 +181,8 @@ def _read_text(path: Path, suffix: str) -> Iterator[can.Message | BadLine]:
                     yield msg
                 return
             except Exception as exc:  # noqa: BLE001 - any parse failure is one bad line
-                yield BadLine(source.line_no, source.last_line.rstrip("\r\n"), _reason(exc))
+                reason = CANDUMP_FORMS if candump else _reason(exc)
+                yield BadLine(source.line_no, source.last_line.rstrip("\r\n"), reason)
                 if source.header is None:
                     # Still in the header: without it nothing after can be read correctly.
                     return
@@ -168,6 +225,21 @@ class UndecodedFrame:
     msg: can.Message
     protocol: str
     error: FrameError | None
+
+    @property
+    def why(self) -> str:
+        """Why no family took a frame none understood (``""``: an ID in no family's space, or
+        one that no family decodes)."""
+        msg = self.msg
+        if self.error is not None or self.protocol:
+            return ""
+        if msg.is_error_frame:
+            return "an error frame (the CAN controller's report of a bus error)"
+        if msg.is_remote_frame:
+            return "a remote (RTR) frame: no ESC family here uses them"
+        if not msg.is_extended_id:
+            return "an 11-bit ID: every ESC family here uses 29-bit IDs (another device's frame)"
+        return ""
 
 
 CaptureItem = DecodedFrame | UndecodedFrame | BadLine
@@ -222,7 +294,9 @@ def decode_capture(
         if isinstance(item, BadLine):
             yield item
             continue
-        candidates = fixed or registry.families_of(item.arbitration_id)
+        data_frame = item.is_extended_id and not (item.is_remote_frame or item.is_error_frame)
+        # Every family's ID space is of 29-bit data frames: other frames are no family's.
+        candidates = fixed or (registry.families_of(item.arbitration_id) if data_frame else ())
         if not candidates:
             yield UndecodedFrame(item, "", None)
             continue

@@ -17,11 +17,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any, Literal
 
+from bridge.bitrate import parse_bitrate
 from bridge.config_checks import (
+    bitrate_value,
     boolean,
     check,
     choice,
-    choice_int,
     float_range,
     int_list,
     int_range,
@@ -311,10 +312,11 @@ class CanConfig:
     channel: str = key("can0", string, "python-can channel (socketcan: the netdev, e.g. can0)")
     bitrate: int | None = key(
         None,
-        optional(
-            choice_int(1_000_000, 750_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
-        ),
-        "bus bit rate in bit/s (default 500000), for the bus-load check and interfaces that set it",
+        optional(bitrate_value),
+        'bus bit rate, bit/s: 500000, "500k" or "1M" (default: the ESC family\'s factory rate); '
+        "checked against a SocketCAN interface's at start, used for the bus-load check, set by "
+        "interfaces that can",
+        convert=lambda v: None if v is None else parse_bitrate(v),
     )
     options: Mapping[str, Any] | None = key(
         None,
@@ -508,6 +510,9 @@ def _build_section(cls: type[Any], name: str, table: Mapping[str, Any], source: 
         problem = known[k].metadata["check"](value)
         if problem is not None:
             raise ConfigError(f"{source}: [{name}] {k}: expected {problem}, got {shown(value)}")
+        convert = known[k].metadata.get("convert")
+        if convert is not None:
+            value = convert(value)
         if isinstance(value, list):
             value = tuple(value)
         values[k] = value

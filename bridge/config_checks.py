@@ -13,6 +13,8 @@ from collections.abc import Callable
 from dataclasses import field
 from typing import Any
 
+from bridge.bitrate import FORMS, parse_bitrate
+
 # Values quoted in messages are shortened: a 4000-digit number or a 10 000-entry list must not
 # bury what was wrong.
 _SHOWN = reprlib.Repr()
@@ -102,13 +104,22 @@ def string_list(v: Any) -> str | None:
     return None if ok else "a list of non-empty strings"
 
 
-def choice_int(*choices: int) -> Callable[[Any], str | None]:
-    return check(
-        lambda v: isinstance(v, int) and v in choices,
-        "one of " + ", ".join(str(c) for c in choices),
-    )
+def bitrate_value(v: Any) -> str | None:
+    """A CAN bit rate as :func:`bridge.bitrate.parse_bitrate` reads it (``500000``, ``"500k"``,
+    ``"1M"``)."""
+    try:
+        parse_bitrate(v)
+    except ValueError:
+        return FORMS
+    return None
 
 
-def key(default: Any, check: Callable[[Any], str | None], doc: str) -> Any:
-    """A config key: its default, its validator (returns what was expected, or None) and doc."""
-    return field(default=default, metadata={"check": check, "doc": doc})
+def key(
+    default: Any,
+    check: Callable[[Any], str | None],
+    doc: str,
+    convert: Callable[[Any], Any] | None = None,
+) -> Any:
+    """A config key: its default, its validator (returns what was expected, or None), its doc,
+    and what turns a checked value into the stored one (``convert``; None: kept as written)."""
+    return field(default=default, metadata={"check": check, "doc": doc, "convert": convert})

@@ -7,6 +7,7 @@ import argparse
 from collections.abc import Mapping
 from typing import Any, Final
 
+from bridge.bitrate import parse_bitrate
 from bridge.config import BridgeConfig, build_config
 from bridge.config_file import merge, read_config_file
 from bridge.errors import ConfigError
@@ -31,14 +32,24 @@ ESC_FLAGS: Final[dict[str, tuple[str, str]]] = {
 
 
 def add_can_flags(
-    group: argparse._ArgumentGroup, *, bitrate_help: str = "CAN bit rate, bit/s"
+    group: argparse._ArgumentGroup,
+    *,
+    bitrate_help: str = "CAN bit rate: 500000, 500k or 1M (default: the ESCs' factory rate)",
 ) -> None:
     """``--can-interface``, ``--can-channel``, ``--can-option`` and ``--bitrate``, as for
     ``run`` (each default None or [], so that a file's [can] section is kept)."""
     group.add_argument("--can-interface", metavar="NAME", help="python-can interface (socketcan)")
     group.add_argument("--can-channel", metavar="CHANNEL", help="python-can channel (can0)")
     add_can_option(group)
-    group.add_argument("--bitrate", type=int, metavar="BPS", help=bitrate_help)
+    group.add_argument("--bitrate", type=bitrate_arg, metavar="BPS", help=bitrate_help)
+
+
+def bitrate_arg(text: str) -> int:
+    """A bit rate as ``500000``, ``500k`` or ``1M``."""
+    try:
+        return parse_bitrate(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_can_option(group: argparse._ActionsContainer) -> None:

@@ -6,17 +6,19 @@ import argparse
 import dataclasses
 import enum
 import json
+import sys
 from typing import Any, cast
 
 from bridge.capture import BadLine, CaptureItem, CaptureSummary, DecodedFrame, decode_capture
-from bridge.cli._common import EXIT_OK
+from bridge.cli._common import EXIT_FAILED, EXIT_OK
 from bridge.escs import registry
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     decode = commands.add_parser(
         "decode",
-        help="decode a CAN capture (candump -L .log, .asc, .blf, .csv, .trc, .mf4, .db)",
+        help="decode a CAN capture (a candump .log, -L or as printed; .asc, .blf, .csv, .trc, "
+        ".mf4, .db)",
         description="Decode a CAN capture into one line per frame, then a summary.",
     )
     decode.add_argument("file", help="the capture; its format is taken from the file suffix")
@@ -31,8 +33,9 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         type=_node_list,
         default=None,
         metavar="N,N,...",
-        help="CKESC node IDs of your ESCs: frames from other nodes that reuse CKESC type IDs "
-        "(other vendors' DroneCAN messages) are then reported as not understood",
+        help="your ESCs' IDs on the bus (node or ESC IDs): where a family shares its ID space "
+        "with other devices (UAVCAN v0 vendors' messages), a frame from another node is then "
+        "reported as not understood",
     )
     decode.add_argument("--json", action="store_true", help="print JSON lines instead of text")
     decode.set_defaults(handler=_decode)
@@ -53,14 +56,25 @@ def _node_list(text: str) -> frozenset[int]:
 def _decode(args: argparse.Namespace) -> int:
     summary = CaptureSummary()
     show = _json_line if args.json else _text_line
+    decoded = 0
     for item in decode_capture(args.file, args.protocol, args.nodes):
         summary.add(item)
+        decoded += isinstance(item, DecodedFrame)
         print(show(item))
     if args.json:
         print(json.dumps({"summary": summary.as_dict()}))
     else:
         print(_summary_text(summary))
-    return EXIT_OK
+    if decoded:
+        return EXIT_OK
+    protocol = "any ESC protocol" if args.protocol == "auto" else f"--protocol {args.protocol}"
+    print(
+        f"esc-bridge: error: nothing in {args.file} decoded as {protocol}: {summary.frames} "
+        f"frames read, {summary.bad_lines} line{'' if summary.bad_lines == 1 else 's'} that "
+        f"{'is' if summary.bad_lines == 1 else 'are'} no frame",
+        file=sys.stderr,
+    )
+    return EXIT_FAILED
 
 
 def _text_line(item: CaptureItem) -> str:
@@ -72,7 +86,7 @@ def _text_line(item: CaptureItem) -> str:
         fields = " ".join(f"{k}={_text_value(v)}" for k, v in _message_fields(item))
         return f"{head}  {item.protocol:<5} node {item.frame.node_id:<3} {item.type_name}  {fields}"
     if item.error is None:
-        return f"{head}  not understood"
+        return f"{head}  not understood" + (f": {item.why}" if item.why else "")
     return f"{head}  {item.protocol:<5} {type(item.error).__name__}: {item.error}"
 
 
@@ -106,6 +120,8 @@ def _json_line(item: CaptureItem) -> str:
         }
     elif item.error is None:
         record["error"] = "NotOurs"
+        if item.why:
+            record["detail"] = item.why
     else:
         record |= {"error": type(item.error).__name__, "detail": str(item.error)}
     return json.dumps(record)

@@ -113,13 +113,14 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--ids",
         type=id_list,
         metavar="ID,ID,...",
-        help="the ESCs' CKESC node IDs / FT ESC IDs, motor 1 first",
+        help="the ESCs' IDs on the bus (each family's node or ESC ID), motor 1 first",
     )
     bus.add_argument(
         "--pole-pairs",
         type=_pole_pairs,
         metavar="P[,P,...]",
-        help="motor pole pairs, one or one per motor (FT: rpm = erpm / P; default 7)",
+        help="motor pole pairs, one or one per motor (ESCs that report erpm: rpm = erpm / P; "
+        "default 7)",
     )
     bus.add_argument(
         "--telemetry-timeout-ms",

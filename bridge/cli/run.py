@@ -8,9 +8,15 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-from bridge.cli._common import EXIT_OK, add_can_option, flag_overrides, merged_config
+from bridge.cli._common import (
+    EXIT_OK,
+    add_can_option,
+    bitrate_arg,
+    flag_overrides,
+    merged_config,
+)
 from bridge.config import SECTIONS, BridgeConfig
-from bridge.errors import ConfigError
+from bridge.errors import ConfigError, LinkError
 from bridge.escs import registry
 
 
@@ -50,7 +56,7 @@ RUN_OVERRIDES: dict[str, tuple[str, str, Callable[[str], Any], str]] = {
     "--source": ("mavlink", "source", str, "MAVLink message with the motor outputs"),
     "--can-interface": ("can", "interface", str, "python-can interface (default socketcan)"),
     "--can-channel": ("can", "channel", str, "python-can channel (default can0)"),
-    "--bitrate": ("can", "bitrate", int, "CAN bit rate, bit/s"),
+    "--bitrate": ("can", "bitrate", bitrate_arg, "CAN bit rate: 500000, 500k or 1M"),
     "--protocol": ("output", "protocol", str, "ESC protocol: " + " or ".join(registry.names())),
     "--rate": ("output", "rate_hz", int, "command rate per ESC, Hz"),
     "--latency": ("output", "latency", str, "fixed or immediate"),
@@ -196,4 +202,6 @@ def _run(args: argparse.Namespace) -> int:
         for line in checked.passed:
             print(f"  {line}")
         return EXIT_OK
+    if checked.interface_refusal is not None:
+        raise LinkError(f"cannot start: {checked.interface_refusal}")
     return supervisor.run(checked, record_dir=args.record, stop_signals=args.stop)

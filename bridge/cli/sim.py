@@ -31,7 +31,8 @@ SIM_FLAGS: dict[str, tuple[str, str]] = {
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sim = commands.add_parser(
         "sim",
-        help="simulate CKESC or FT ESCs, each with a motor, on a CAN bus (tests and demos)",
+        help="simulate ESCs of any family (--protocol), each with a motor, on a CAN bus (tests "
+        "and demos)",
         description="Put simulated ESCs on a CAN bus: they obey the bridge's commands and send "
         "telemetry as real ones do, from motors and a battery that respond believably. Runs "
         "until Ctrl-C, SIGTERM or --duration, logging a status line every few seconds.",
@@ -52,8 +53,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--ids",
         type=id_list,
         metavar="ID,ID,...",
-        help="the ESCs' CKESC node IDs / FT ESC IDs, motor 1 first (CKESC throttle channels "
-        "are 1..N, or the file's [escs] ckesc_channels)",
+        help="the ESCs' IDs on the bus (each family's node or ESC ID), motor 1 first; ESCs that "
+        "follow a throttle channel get channels 1..N unless the file's [escs] says otherwise",
     )
     bus = sim.add_argument_group("CAN bus")
     add_can_flags(bus)

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from bridge.bitrate import bitrate_text
 from bridge.cli._common import (
     CAN_FLAGS,
+    EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
     add_can_flags,
@@ -152,13 +154,31 @@ def _esc_spin(args: argparse.Namespace) -> int:
         )
 
     result = spin.spin(plan, progress=show)
+    answered = result.telemetry_frames > 0
+    ended = result.ended if answered or result.ended != "done" else "no answer"
+    rpm = "" if result.rpm is None else f", last rpm {result.rpm}"
     print(
-        f"motor {request.motor} stopped, safe values sent: {result.ended} after "
+        f"motor {request.motor} stopped, safe values sent: {ended} after "
         f"{result.elapsed_s:.2f} s, {result.frames_sent} frames, then {result.safe_frames_sent} "
-        f"safe; {result.send_errors} send errors",
+        f"safe; {result.send_errors} send errors; {result.telemetry_frames} telemetry frames "
+        f"from its ESC{rpm}",
         flush=True,
     )
     if result.ended == "bus error":
         print("esc-bridge: error: the CAN bus failed during the spin", file=sys.stderr)
-        return 1
-    return EXIT_INTERRUPTED if result.ended == "interrupted" else EXIT_OK
+        return EXIT_FAILED
+    if result.ended == "interrupted":
+        return EXIT_INTERRUPTED
+    if not answered:
+        rate = config.bitrate
+        print(
+            f"esc-bridge: error: nothing answered: no telemetry from motor {request.motor}'s ESC "
+            f"({esc}) on "
+            f"{config.can.interface} {config.can.channel} at {rate} bit/s "
+            f"({bitrate_text(rate)}) during the spin; is the ESC powered and wired, is its ID "
+            "the one in [escs] ids, does it run at that bit rate and take CAN commands "
+            "(docs/troubleshooting.md)?",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    return EXIT_OK

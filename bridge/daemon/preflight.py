@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
+from bridge.can_interface import Assessment, assess, read_link
 from bridge.can_io import check_interface
 from bridge.config import BridgeConfig, with_mixer_esc_count
 from bridge.errors import ConfigError
@@ -108,6 +109,10 @@ class Plan:
     """The recording directory (``--record``), checked writable, or None."""
     passed: tuple[str, ...]
     """What each check beyond the mixer and the bus load found, one line each (for --check)."""
+    interface_refusal: str | None = None
+    """Why ``run`` must not start on the CAN interface as the system has it (missing, down,
+    bus-off), with what to do; None: it may. ``--check`` only reports it: it checks the
+    configuration, and may run on another machine than the vehicle."""
 
 
 def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
@@ -145,6 +150,9 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
         describe_sets(config.mavlink, len(config.escs.ids)),
         _check_dialect(),
     ]
+    interface = _check_can_interface(config)
+    if interface is not None:
+        passed.append(interface.text)
     directory = None
     if record_dir:  # as the daemon reads it: an empty --record means no recording
         directory = Path(record_dir)
@@ -159,7 +167,24 @@ def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:
         tuple(outputs),
         directory,
         tuple(passed),
+        None if interface is None else interface.refusal,
     )
+
+
+def _check_can_interface(config: BridgeConfig) -> Assessment | None:
+    """A SocketCAN interface's state and bit rate against ``[can] bitrate`` (None for other
+    interfaces: they have no system configuration to read).
+
+    Raises:
+        ConfigError: the interface runs at another bit rate.
+    """
+    if config.can.interface != "socketcan":
+        return None
+    channel = config.can.channel
+    found = assess(read_link(channel), channel, config.bitrate)
+    if found.mismatch:
+        raise ConfigError(f"{config.source}: {found.refusal}")
+    return found
 
 
 @contextlib.contextmanager

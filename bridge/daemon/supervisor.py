@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
+from bridge.daemon.absence import AbsenceWatch, EscsHeard
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.daemon.motor_test_control import MotorTestControl
@@ -122,6 +123,7 @@ class Supervisor:
         )
         self.health_report.fanout = self.fanout
         self._stop = threading.Event()
+        self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
         self._last_errors = 0
         self._errors_logged_at = 0.0
@@ -153,6 +155,8 @@ class Supervisor:
             self.runner.start()
             self._await_loop_start()
             self.fanout.start()
+            # Counted from here: the loop's process may take seconds to start on a busy machine.
+            self._absence = AbsenceWatch(config, time.monotonic_ns(), log.log)
             while not self._stop.is_set():
                 if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
                     return self._loop_died()
@@ -210,7 +214,21 @@ class Supervisor:
 
     def _watch(self) -> None:
         stats = self.stats
-        self.link.note_outputs(stats["input_outputs"], time.monotonic_ns())
+        now_ns = time.monotonic_ns()
+        self.link.note_outputs(stats["input_outputs"], now_ns)
+        reader = self.fanout.reader
+        if self._absence is not None:
+            self._absence.check(
+                now_ns,
+                self.link.stats,
+                None
+                if reader is None
+                else lambda: EscsHeard(
+                    self.fanout.table.snapshot(now_ns),
+                    reader.stats.frames,
+                    self.fanout.table.unknown_frames,
+                ),
+            )
         self.health_report.sample()
         state = LoopState(stats["state"])
         if state != self._reported_state and state in STATE_REPORTS:

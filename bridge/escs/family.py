@@ -132,6 +132,10 @@ class EscTelemetry:
     """The ESC's raw status word, published as received."""
     status_failures: int | None = None
     """The ESC_FAILURE_FLAGS that ``status`` raises (the family's table)."""
+    uncommanded_failures: int | None = None
+    """The ESC_FAILURE_FLAGS that ``status`` raises only because no command reaches the ESC
+    (its own "no throttle received" report): a failure while commands are being sent, an idle
+    ESC's normal state when nothing commands it. Given with ``status``."""
     counters: Mapping[str, int] = field(default_factory=dict)
     """Slow information (counts, run times, fault codes), merged into the ESC's counters."""
     fault_counters: frozenset[str] = frozenset()

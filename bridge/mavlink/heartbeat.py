@@ -155,11 +155,18 @@ class Heartbeat:
         if slow and not self._slow_logged:
             log.warning(
                 "%s from %d/%d arrives at %.0f Hz, too slow for input_timeout_ms (it needs "
-                "%.0f Hz or more): the motors will not arm on it",
+                "%.0f Hz or more): the motors will not arm on it; %s "
+                "(docs/troubleshooting.md)",
                 self._output_name,
                 *self._autopilot,
                 rate_hz,
                 self._needed_rate_hz,
+                "the autopilot did not take the rate asked for: set the stream's rate in the "
+                "autopilot (ArduPilot SRn_ parameters, PX4 MAV_n_RATE), or a slower stream needs "
+                "a larger [output] input_timeout_ms"
+                if self._output_request.asked_hz
+                else "[mavlink] stream_rate_hz is 0: give it a rate to ask the autopilot for, or "
+                "set the stream's rate in the autopilot",
             )
         self._slow_logged = slow
 

@@ -177,10 +177,11 @@ class ZenohSource:
                 if vehicle.received is None:  # only esc/<n>/info so far
                     continue
                 age = now - vehicle.received
-                escs = tuple(vehicle.row(esc) for esc in vehicle.escs)
-                states.append(
-                    VehicleState(vehicle_name(name), escs, age > self._stale_after_s, age)
-                )
+                stale = age > self._stale_after_s
+                # A stale vehicle's records keep ageing: each is as old as when it was
+                # published plus the time since (a fresh one's is at most a period behind).
+                escs = tuple(vehicle.row(_aged(esc, age) if stale else esc) for esc in vehicle.escs)
+                states.append(VehicleState(vehicle_name(name), escs, stale, age))
             bad = self.bad_messages
         if bad and states:
             states[-1] = replace(states[-1], note=f"{bad} malformed messages ignored")
@@ -235,6 +236,12 @@ class ZenohSource:
         log.debug("dropped a payload: %s", exc)
 
 
+def _aged(esc: EscTelemetryPayload, seconds: float) -> EscTelemetryPayload:
+    if esc.age_ms is None:
+        return esc
+    return replace(esc, age_ms=esc.age_ms + seconds * 1000.0)
+
+
 def _without_sources(exc: Exception) -> str:
     # Zenoh's errors name the Rust source file of each cause; the user needs only the causes.
     return re.sub(r" at \S+\.rs:\d+\.?", "", str(exc)).strip()
@@ -250,7 +257,8 @@ class CanSource:
 
     def __init__(self, config: BridgeConfig, bus: can.BusABC) -> None:
         """Use :meth:`open`, which opens the bus and starts reading."""
-        self.table = esc_table(config)
+        # The monitor only listens: an ESC that reports "no command" is idle, not failing.
+        self.table = esc_table(config, commanded=False)
         self._bus: can.BusABC | None = bus
         self.reader = CanReader(bus, self.table, registry.family(config.output.protocol))
         self._name = f"{config.can.interface}:{config.can.channel}"

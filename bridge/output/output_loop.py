@@ -412,7 +412,10 @@ class OutputLoop:
         return sent
 
     def _open_bus(self) -> can.BusABC:
-        return open_bus(self._config.can, self._config.bitrate, receive=self._bus_receive)
+        # explain=False: no `ip` process from the loop; preflight read the interface.
+        return open_bus(
+            self._config.can, self._config.bitrate, receive=self._bus_receive, explain=False
+        )
 
     def _reopen(self) -> can.BusABC | None:
         try:

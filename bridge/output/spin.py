@@ -6,6 +6,11 @@ throttle, holds it, ramps it down, and sends safe values to every ESC afterwards
 the spin (the time limit, Ctrl-C, SIGTERM, an exception). Each tick's frames are the output
 loop's for a motor test (:func:`bridge.output.motor_test.test_frames`), through the same
 drivers and limits. Nothing here prints; the CLI does (``bridge/cli/spin.py``).
+
+Sending proves nothing on CAN: a frame no ESC acknowledges just stays in the controller's
+queue, and on a virtual bus nothing acknowledges at all. Every ESC family here reports
+telemetry many times a second, so the spin reads the bus with the daemon's reader meanwhile,
+and the result says how many telemetry frames the spun ESC sent: none means nothing answered.
 """
 
 from __future__ import annotations
@@ -23,11 +28,14 @@ import can
 from bridge.can_io import check_interface, is_transient, open_bus
 from bridge.config import BridgeConfig, with_mixer_esc_count
 from bridge.errors import ConfigError, LinkError
+from bridge.escs import registry
 from bridge.escs.drivers import flush_safe_values, make_driver
 from bridge.mixing.definition import MixerDefinition
 from bridge.mixing.loader import load_mixer
 from bridge.output.busload import check_bus_load
 from bridge.output.motor_test import SPIN_RAMP_S, SpinRequest, ramp_fraction, test_frames
+from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.reader import CanReader
 
 __all__ = [
     "SpinPlan",
@@ -118,6 +126,11 @@ class SpinResult:
     """Safe-value frames sent afterwards."""
     send_errors: int
     peak_fraction: float
+    telemetry_frames: int = 0
+    """Telemetry frames the spun motor's ESC sent during the spin and the safe values after:
+    0 means nothing answered (no such ESC on the bus, or not at this bit rate)."""
+    rpm: int | None = None
+    """The rpm that ESC last reported (None: it reported none)."""
 
 
 def spin(
@@ -146,6 +159,9 @@ def spin(
     driver = make_driver(config)
     period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
     bus = open_bus(config.can, config.bitrate)
+    table = esc_table(config)
+    reader = CanReader(bus, table, registry.family(config.output.protocol))
+    reader.start()
     sender = _Sender(bus)
     fractions = [0.0] * len(config.escs.ids)
     index, target, ramp_s = plan.index, plan.fraction, plan.ramp_s
@@ -200,14 +216,26 @@ def spin(
         try:
             with _signals_set(stop, handle_signals):
                 if sender.gone:  # one more try on a fresh handle: the safe values matter most
+                    reader.close()
                     bus.shutdown()
                     with contextlib.suppress(LinkError):
                         bus = sender.reopen(open_bus(config.can, config.bitrate))
                 flush_ms = max(config.output.shutdown_flush_ms, SPIN_MIN_FLUSH_MS)
                 flush_safe_values(sender.send, driver, period_ns, flush_ms, tick)
         finally:
+            reader.close()
             bus.shutdown()
-    return SpinResult(ended, elapsed_s, frames_sent, sender.sent, sender.errors, peak)
+    heard = table.snapshot(time.monotonic_ns())[index]
+    return SpinResult(
+        ended,
+        elapsed_s,
+        frames_sent,
+        sender.sent,
+        sender.errors,
+        peak,
+        heard.frames,
+        heard.rpm,
+    )
 
 
 class _Sender:

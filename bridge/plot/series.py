@@ -265,7 +265,10 @@ class _Esc:
         for name, value in values.items():
             if value is not None and math.isfinite(value):
                 self.points.setdefault(name, _Points()).add(t_s, float(value))
+        # A recording is of the bridge, which commands the ESCs: "no command" is a failure.
         flags = telemetry.status_failures
+        if flags is not None:
+            flags |= telemetry.uncommanded_failures or 0
         if flags is not None and flags != self.flags:
             self._end_run(t_s)
             self.flags, self.flags_since = flags, t_s

@@ -9,9 +9,9 @@ from bridge.escs import registry
 from bridge.telemetry.state import EscTable, TelemetryLimits
 
 
-def esc_table(config: BridgeConfig) -> EscTable:
+def esc_table(config: BridgeConfig, *, commanded: bool = True) -> EscTable:
     """The ESCs of ``config`` (its ESC lists already sized by ``with_esc_count``), with its
-    ``[telemetry]`` timeout, pole pairs and limits."""
+    ``[telemetry]`` timeout, pole pairs and limits; ``commanded``: as :class:`EscTable`."""
     telemetry, family = config.telemetry, registry.family(config.output.protocol)
     return EscTable(
         config.escs.ids,
@@ -24,4 +24,5 @@ def esc_table(config: BridgeConfig) -> EscTable:
             max_rpm=telemetry.max_rpm,
             error_burst=telemetry.error_burst,
         ),
+        commanded=commanded,
     )

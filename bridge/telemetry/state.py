@@ -131,6 +131,7 @@ class _Esc:
         "status",
         "status_failures",
         "throttle",
+        "uncommanded_failures",
         "voltage_v",
     )
 
@@ -151,6 +152,7 @@ class _Esc:
         self.mcu_temp_c: float | None = None
         self.status: int | None = None
         self.status_failures = 0  # what the status word raises, as the family maps it
+        self.uncommanded_failures = 0  # ... only because no command reaches the ESC
         self.reported_faults = 0  # GENERIC from the family's fault counters
         self.frames = 0
         self.errors = 0
@@ -183,10 +185,14 @@ class EscTable:
         channels: Sequence[int] | None = None,
         timeout_ms: int = 500,
         limits: TelemetryLimits | None = None,
+        commanded: bool = True,
     ) -> None:
         """``node_ids[i]`` is the ESC ID of motor i + 1; ``pole_pairs`` is one value for every
         motor or one per motor (used to turn erpm into rpm); ``channels[i]`` is the throttle
         channel of motor i + 1 (default i + 1), to read back commands sent by channel.
+        ``commanded``: the owner sends the ESCs commands (the bridge), so an ESC's "no command
+        received" report is a failure; False for a listener (the monitor on the bus), to which
+        it is an idle ESC's state.
 
         Raises:
             ValueError: ``pole_pairs`` has the wrong length or a value below 1.
@@ -199,6 +205,7 @@ class EscTable:
         self._lock = threading.Lock()
         self._timeout_ns = timeout_ms * 1_000_000
         self._limits = limits or TelemetryLimits()
+        self._commanded = commanded
         self._escs = [_Esc(i + 1, node, pairs[i]) for i, node in enumerate(node_ids)]
         self._by_node = {esc.node_id: esc for esc in self._escs}
         channels = channels or range(1, len(node_ids) + 1)
@@ -302,6 +309,7 @@ class EscTable:
         if t.status is not None:
             esc.status = t.status
             esc.status_failures = t.status_failures or 0
+            esc.uncommanded_failures = t.uncommanded_failures or 0
         if t.counters:
             esc.counters.update(t.counters)
             esc.fault_counters |= t.fault_counters
@@ -314,6 +322,8 @@ class EscTable:
     def _failure_flags(self, esc: _Esc, now_ns: int) -> int:
         limits = self._limits
         flags = esc.reported_faults | esc.status_failures
+        if self._commanded:
+            flags |= esc.uncommanded_failures
         if limits.max_temp_c is not None:
             temps = (esc.mos_temp_c, esc.capacitor_temp_c, esc.motor_temp_c, esc.mcu_temp_c)
             if any(t is not None and t > limits.max_temp_c for t in temps):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import subprocess
 from pathlib import Path
@@ -33,6 +34,12 @@ def test_ckesc_capture_text_summary() -> None:
     assert "RawCommand12b  group=1 throttles=1100,1105,1110,1115" in out
     assert "line 61: not a frame" in out and "'(not a time) can0 garbage'" in out
     assert "TailByteError" in out
+    # Line 44's 11-bit frame is no family's, not a malformed frame of one.
+    assert (
+        "00000123  de ad be ef              not understood: an 11-bit ID: every ESC family here "
+        "uses 29-bit IDs (another device's frame)"
+    ) in out
+    assert "NotExtendedIdError" not in out
     summary = out[out.index("-- 73 frames") :]
     for line in (
         "20  ckesc Msg1",
@@ -41,9 +48,8 @@ def test_ckesc_capture_text_summary() -> None:
         "40  ckesc RawCommand12b",
         # Node 42's NodeStatus is standard DroneCAN, no longer another protocol's traffic.
         "1  dronecan NodeStatus",
-        "0  not understood (another protocol)",
+        "1  not understood (another protocol)",
         "2  DlcError",
-        "1  NotExtendedIdError",
         "1  TailByteError",
         "-- CRC errors: 0; malformed lines skipped: 1",
     ):
@@ -54,7 +60,7 @@ def test_nodes_keep_other_vendors_frames_out() -> None:
     # Node 42's 8-byte frame on MSG1's type ID is another vendor's message, not a bad MSG1.
     result = decode(str(CKESC_LOG), "--nodes", "1,2,3,4")
     assert result.returncode == 0
-    assert "2  not understood (another protocol)" in result.stdout
+    assert "3  not understood (another protocol)" in result.stdout  # and the 11-bit frame
     assert "1  DlcError" in result.stdout  # only the truncated MSG1 from node 3 is left
 
 
@@ -84,8 +90,12 @@ def test_json_lines() -> None:
 def test_protocol_forced() -> None:
     # Read as FT, CKESC IDs are outside FT's space: nothing is understood, nothing crashes.
     result = decode(str(CKESC_LOG), "--protocol", "ft")
-    assert result.returncode == 0
+    assert result.returncode == 1
     assert "72  not understood (another protocol)" in result.stdout
+    assert result.stderr == (
+        f"esc-bridge: error: nothing in {CKESC_LOG} decoded as --protocol ft: 73 frames read, 1 "
+        "line that is no frame\n"
+    )
 
 
 def dronecan_capture(path: Path) -> Path:
@@ -172,6 +182,58 @@ def test_other_formats_with_a_bad_line(
     result = decode(str(path))
     assert f"line {target + 1}: not a frame" in result.stdout
     assert "malformed lines skipped: 1" in result.stdout
+
+
+def test_candump_default_output(tmp_path: Path) -> None:
+    # What `candump can0` prints on a terminal (and with -t a, -t A, -x, -a), saved as .log.
+    path = tmp_path / "plain.log"
+    path.write_text(
+        "  can0  1F4E5203   [7]  E0 2E DC 05 00 01 C7\n"
+        " (1795330000.000100)  can0  00000100   [7]  00 03 0D 40 00 47 84\n"
+        " (2026-11-24 23:59:59.500000)  can0  1F4E5203   [7]  E0 2E DC 05 00 01 C7\n"
+        "  can0  RX - -  1E4   [3]  00 11 22   '..\"'\n"
+        "  can0  123   [0]  remote request\n"
+        "\n"
+        "can0 1F4E5201 [8] 11 22\n"
+    )
+    result = decode(str(path))
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    msg1 = "1F4E5203  e0 2e dc 05 00 01 c7     ckesc node 3   Msg1  speed_rpm=12000 throttle=1500"
+    assert lines[0] == f"      0.000000  {msg1} status=RUNNING"
+    assert lines[1] == (
+        "1795330000.000100  00000100  00 03 0d 40 00 47 84     ft    node 1   SetCurrent  "
+        "current_a=2 gear=NONE crc=True"
+    )
+    stamp = datetime.datetime(2026, 11, 24, 23, 59, 59, 500000).timestamp()
+    assert lines[2] == f"{stamp:14.6f}  {msg1} status=RUNNING"
+    assert lines[3].endswith(
+        "000001E4  00 11 22                 not understood: an 11-bit ID: "
+        "every ESC family here uses 29-bit IDs (another device's frame)"
+    )
+    assert lines[4].endswith("not understood: a remote (RTR) frame: no ESC family here uses them")
+    # The last line says [8] but carries 2 bytes: neither format.
+    assert lines[5] == (
+        "line 7: not a frame (expected a candump line: `candump -L` such as '(1712345678.123456) "
+        "can0 1F4E5201#B90B4C04', or candump's default such as '  can0  1F4E5201   [4]  B9 0B 4C "
+        "04'): 'can0 1F4E5201 [8] 11 22'"
+    )
+    assert "-- 5 frames" in result.stdout and "malformed lines skipped: 1" in result.stdout
+
+
+def test_a_capture_of_no_frames_fails(tmp_path: Path) -> None:
+    path = tmp_path / "notes.log"
+    path.write_text("bus was quiet\nsee ticket 12\n")
+    result = decode(str(path))
+    assert result.returncode == 1
+    assert [line[:33] for line in result.stdout.splitlines()[:2]] == [
+        "line 1: not a frame (expected a c",
+        "line 2: not a frame (expected a c",
+    ]
+    assert result.stderr == (
+        f"esc-bridge: error: nothing in {path} decoded as any ESC protocol: 0 frames read, 2 "
+        "lines that are no frame\n"
+    )
 
 
 def test_unknown_format_and_missing_file(tmp_path: Path) -> None:

@@ -755,6 +755,28 @@ def test_check_passes_every_shipped_example(path: Path) -> None:
     assert any(line.startswith("  MAVLink dialect loads") for line in lines)
 
 
+def test_socketcan_interface_is_read_and_a_missing_one_named(tmp_path: Path) -> None:
+    # This machine has no SocketCAN: --check says so (it checks a configuration, maybe for
+    # another machine) and run refuses to start, naming the channel; --bitrate takes 1M.
+    args = ["--can-channel", "can7", "--bitrate", "1M", "--mavlink", "udpout:127.0.0.1:9"]
+    check = esc_bridge("run", "--check", "--no-zenoh", *args)
+    assert check.returncode == 0, check.stderr
+    lines = check.stdout.splitlines()
+    assert lines[2].startswith("  bus load ") and " of 1000 kbit/s: " in lines[2]
+    assert (
+        lines[-1] == "  SocketCAN interface can7: not found on this machine; run refuses to start"
+    )
+    run = esc_bridge("run", "--no-zenoh", *args)
+    assert run.returncode == 1
+    assert run.stderr.startswith(
+        "esc-bridge: error: cannot start: SocketCAN interface can7 does not exist; expected a CAN "
+        "interface: "
+    )
+    bad = esc_bridge("run", "--check", "--no-zenoh", *args[:2], "--bitrate", "1.5M")
+    assert bad.returncode == 2
+    assert "--bitrate: expected a bit rate such as 500000, 500k or 1M" in bad.stderr
+
+
 # -- run and --check agree -------------------------------------------------------------------
 
 # (config file, extra args, extra environment, good?) run by `run` and by `run --check` with

@@ -169,3 +169,6 @@ def test_a_stream_too_slow_for_the_input_timeout_is_reported(
         caplog.text
     )
     assert "not asked for a rate" in caplog.text
+    assert "will not arm on it; [mavlink] stream_rate_hz is 0: give it a rate to ask" in (
+        caplog.text
+    )

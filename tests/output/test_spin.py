@@ -5,6 +5,7 @@ observer."""
 from __future__ import annotations
 
 import math
+import re
 import signal
 import subprocess
 import time
@@ -79,6 +80,10 @@ def test_ckesc_spin_ramps_holds_stops_in_time_and_ends_safe(
     out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert "motor 2 stopped, safe values sent: done" in out
+    # Its ESC answered: MSG1 at 50 Hz for about 1.7 s, the last after the spin's ramp down.
+    heard = re.search(r"; (\d+) telemetry frames from its ESC, last rpm (\d+)\n", out)
+    assert heard is not None, out
+    assert int(heard[1]) >= 20
     time.sleep(0.2)
     assert rpm[1] > 1000 and rpm[0] == rpm[2] == rpm[3] == 0
 
@@ -137,6 +142,29 @@ def test_ft_spin_commands_one_esc_in_its_mode_and_brakes_the_others(
         (e, ft.SetCurrentBrake) for e in (21, 22, 23, 24)
     }
     assert 60 <= len(flush) <= 100  # 200 ms at 4 x 100 frames/s
+
+
+def test_ft_spin_with_no_ft_esc_says_nothing_answered(
+    observer: Observer, ckesc_sim: Simulator, bus_args: list[str]
+) -> None:
+    # CKESCs on the bus, commands sent as FT: the frames go out, no FT ESC answers.
+    proc = spin(
+        "--protocol", "ft", "--motor", "1", "--throttle", "10", "--seconds", "1",
+        "--props-removed", "--bitrate", "1M", *bus_args,
+    )  # fmt: skip
+    out, err = proc.communicate(timeout=15)
+    assert proc.returncode == 1, out + err
+    assert "motor 1 stopped, safe values sent: no answer after " in out
+    assert "; 0 telemetry frames from its ESC\n" in out and "done" not in out
+    assert err == (
+        "esc-bridge: error: nothing answered: no telemetry from motor 1's ESC (FT ESC 1, current "
+        "mode) on "
+        "udp_multicast 239.74.163.2 at 1000000 bit/s (1 Mbit/s) during the spin; is the ESC "
+        "powered and wired, is its ID the one in [escs] ids, does it run at that bit rate and "
+        "take CAN commands (docs/troubleshooting.md)?\n"
+    )
+    sent = [c for _, m in observer.frames if (c := ft_current(m)) is not None]
+    assert max(current for _, current in sent) > 0  # the FT commands did go out
 
 
 def ft_current(msg: can.Message) -> tuple[int, float] | None:

@@ -102,7 +102,7 @@ def test_can_reader_frames_are_recorded_and_decode_back(tmp_path: Path) -> None:
         "20  ckesc Msg2",
         "20  ckesc Msg3",
         "1  ckesc RawCommand12b",
-        "1  NotExtendedIdError",  # the 11-bit frame: neither protocol's
+        "1  not understood (another protocol)",  # the 11-bit frame: no family's
         "-- CRC errors: 0; malformed lines skipped: 0",
     ):
         assert line in out

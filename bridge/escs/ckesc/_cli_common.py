@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Final, TypeVar
 
+from bridge.bitrate import bitrate_text
 from bridge.cli._common import (
     CAN_FLAGS,
     EXIT_INTERRUPTED,
@@ -121,7 +122,7 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, json_output: bool = Tr
     """The bus flags (as ``run``'s), ``--timeout`` and ``--json``."""
     bus = parser.add_argument_group("CAN bus (as for `esc-bridge run`)")
     bus.add_argument("--config", metavar="FILE", help="a bridge configuration: its [can] section")
-    add_can_flags(bus, bitrate_help="CAN bit rate, bit/s (CKESC factory: 500000)")
+    add_can_flags(bus, bitrate_help="CAN bit rate: 500000, 500k or 1M (CKESC factory: 500k)")
     parser.add_argument(
         "--timeout",
         type=positive_seconds,
@@ -162,20 +163,6 @@ def _hertz(text: str) -> float:
     return value
 
 
-def _bitrate(text: str) -> int:
-    lowered = text.strip().lower()
-    scale = {"k": 1000, "m": 1_000_000}.get(lowered[-1:], 1)
-    try:
-        value = float(lowered[:-1] if scale > 1 else lowered) * scale
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(
-            f"expected a bit rate such as 500000, 500k or 1M, got {text!r}"
-        )
-    return round(value)
-
-
 def interval_ms(hz: float) -> int:
     """A report rate as the nearest interval the ESC can take (2 ms units)."""
     return 2 * round(500 / hz)
@@ -194,6 +181,18 @@ def bus_config(args: argparse.Namespace) -> tuple[CanConfig, int]:
             "`esc-bridge esc` sets up CKESC ESCs only"
         )
     return config.can, config.bitrate
+
+
+def bus_text(args: argparse.Namespace) -> str:
+    """The bus the flags name, for messages: ``socketcan can7 at 500000 bit/s (500 kbit/s)``.
+
+    Raises:
+        ConfigError: a flag or the file is invalid.
+    """
+    can_config, bitrate = bus_config(args)
+    return (
+        f"{can_config.interface} {can_config.channel} at {bitrate} bit/s ({bitrate_text(bitrate)})"
+    )
 
 
 @contextlib.contextmanager
@@ -238,9 +237,10 @@ def _run(
         with open_client(args) as client:
             return action(client)
     except NoAnswerError as exc:
+        where = f"; the bus: {bus_text(args)}"
         if not scan_hint or isinstance(exc, WrongNodeError) or args.node is None:
-            raise
-        raise type(exc)(f"{exc} (`esc-bridge esc scan` lists the ESCs on the bus)") from None
+            raise type(exc)(f"{exc}{where}") from None
+        raise type(exc)(f"{exc}{where} (`esc-bridge esc scan` lists the ESCs on the bus)") from None
     except KeyboardInterrupt:
         print("esc-bridge: interrupted", file=sys.stderr)
         raise SystemExit(EXIT_INTERRUPTED) from None

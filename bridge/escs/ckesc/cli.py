@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Final, TypeAlias
 from bridge.cli._common import (
     EXIT_FAILED,
     EXIT_OK,
+    bitrate_arg,
     positive_seconds,
 )
 from bridge.errors import ConfigError
@@ -41,13 +42,13 @@ from bridge.escs.ckesc._cli_common import (
     REPORT_COMMANDS,
     ROTATIONS,
     SOURCES,
-    _bitrate,
     _hertz,
     _integer,
     _node_argument,
     _print_json,
     _run,
     add_bus_arguments,
+    bus_text,
     interval_ms,
     jsonable,
     record_lines,
@@ -87,9 +88,9 @@ def _scan(args: argparse.Namespace) -> int:
             print(f"warning: {warning}")
     if not escs:
         print(
-            "esc-bridge: error: no ESC answered GET_ESC_ID: is the ESC powered and wired "
-            "(CAN H/L, 120 ohm at both ends), and does the bus run at the ESC's bit rate "
-            "(500 kbit/s from the factory)?",
+            f"esc-bridge: error: no ESC answered GET_ESC_ID on {bus_text(args)}: is the ESC "
+            "powered and wired (CAN H/L, 120 ohm at both ends), and does it run at that bit "
+            "rate (500 kbit/s from the factory; --bitrate or [can] bitrate for another)?",
             file=sys.stderr,
         )
         return EXIT_FAILED
@@ -433,7 +434,7 @@ COMMANDS: Final[tuple[_Command, ...]] = (
         arguments=(
             _arg(
                 "new_bitrate",  # not "bitrate": that is the bus's own (--bitrate)
-                type=_bitrate,
+                type=bitrate_arg,
                 metavar="BITRATE",
                 help="1M, 500k, 250k, 200k, 125k, 100k or 50k (or in bit/s)",
             ),

@@ -13,6 +13,7 @@ from typing import Final
 from bridge.escs import ckesc
 from bridge.escs.family import (
     FAILURE_GENERIC,
+    FAILURE_NONE,
     FAILURE_OVER_CURRENT,
     FAILURE_OVER_TEMPERATURE,
     FAILURE_OVER_VOLTAGE,
@@ -29,9 +30,11 @@ STATUS_FAILURES: Final[tuple[tuple[int, int], ...]] = (
     (int(_S.OVER_VOLTAGE), FAILURE_OVER_VOLTAGE),
     (int(_S.OVER_TEMPERATURE), FAILURE_OVER_TEMPERATURE),
     (int(_S.UNDER_VOLTAGE), FAILURE_GENERIC),
-    (int(_S.COMMS_FAULT), FAILURE_GENERIC),
     (int(_S.SELF_TEST_ERRORS), FAILURE_GENERIC),
 )
+NO_COMMAND: Final = int(_S.COMMS_FAULT)
+"""MSG1's comms fault, no valid CAN throttle for 200 ms: GENERIC as the record's
+``uncommanded_failures`` (every idle ESC raises it when nothing commands it)."""
 _SELF_TEST_FAULT: Final = frozenset({"self_test_fault"})
 _FAULT_CODE_2: Final = frozenset({"fault_code_2"})
 
@@ -81,6 +84,7 @@ def telemetry(frame: ckesc.CkescFrame) -> EscTelemetry | None:
             throttle=message.throttle / ckesc.THROTTLE_MAX,
             status=status,
             status_failures=status_failures(status),
+            uncommanded_failures=FAILURE_GENERIC if status & NO_COMMAND else FAILURE_NONE,
         )
     if isinstance(message, ckesc.Msg2):
         return EscTelemetry(

@@ -209,8 +209,13 @@ def test_scan_without_escs_fails_with_advice(
 ) -> None:
     code, out, err = esc(capsys, bench, "scan")
     assert (code, out) == (1, "")
-    assert err.startswith("esc-bridge: error: no ESC answered GET_ESC_ID")
+    assert err.startswith(
+        f"esc-bridge: error: no ESC answered GET_ESC_ID on virtual {bench.channel} at 500000 "
+        "bit/s (500 kbit/s): "
+    )
     assert "bit rate" in err and err.count("\n") == 1
+    code, out, err = esc(capsys, bench, "scan", "--bitrate", "1M")
+    assert f"on virtual {bench.channel} at 1000000 bit/s (1 Mbit/s): " in err
 
 
 # -- set-id, baud ----------------------------------------------------------------------------
@@ -299,7 +304,7 @@ def test_baud_is_taken_within_the_window_and_refused_after(
         (["report-rate", "--node", "1", "--msg3-hz", "1"], "--msg3-hz"),
         (["expand", "--node", "1", "direction", "3"], "PART"),
         (["expand", "--node", "1", "startup-acceleration", "16"], "PART"),
-        (["baud", "--node", "1", "300k"], "BITRATE"),
+        (["baud", "--node", "1", "750k"], "BITRATE"),  # a CAN rate, not a CKESC one
         (["info", "--node", "128"], "--node"),
         (["reports", "pause", "--node", "126"], "--node"),
         (["can-test", "--node", "200", "--seconds", "0.1"], "--node"),
@@ -610,6 +615,7 @@ def test_a_missing_node_is_reported_within_the_timeout(
         assert (code, out) == (1, ""), command
         assert err.startswith("esc-bridge: error: node 7 did not answer "), err
         assert "within 0.3 s" in err and "`esc-bridge esc scan` lists the ESCs" in err
+        assert f"; the bus: virtual {bench.channel} at 500000 bit/s (500 kbit/s) (" in err
         assert err.count("\n") == 1
 
 

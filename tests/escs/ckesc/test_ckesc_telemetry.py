@@ -13,7 +13,7 @@ import pytest
 from bridge.errors import LinkError
 from bridge.escs import ckesc, registry
 from bridge.escs.ckesc.setup import learn_node_ids
-from bridge.escs.ckesc.telemetry import STATUS_FAILURES
+from bridge.escs.ckesc.telemetry import NO_COMMAND, STATUS_FAILURES
 from bridge.escs.family import (
     FAILURE_GENERIC,
     FAILURE_OVER_CURRENT,
@@ -121,9 +121,26 @@ def test_ckesc_status_bits_become_failure_flags(status: S, flags: int) -> None:
     assert table.snapshot(T0)[0].failure_flags == flags
 
 
+def test_no_command_is_a_failure_only_to_a_commanding_owner() -> None:
+    # Every idle CKESC raises its comms fault 200 ms after the last command: the bridge, which
+    # sends commands, sees a failure; the monitor, listening, an idle ESC.
+    idle = ck(3, ckesc.Msg1(0, 0, S.COMMS_FAULT | S.UNDER_VOLTAGE))
+    quiet = ck(3, ckesc.Msg1(0, 0, S.COMMS_FAULT))
+    for commanded, flags in ((True, FAILURE_GENERIC), (False, 0)):
+        table = EscTable([3], commanded=commanded)
+        feed(table, quiet, T0)
+        assert table.snapshot(T0)[0].failure_flags == flags
+    listening = EscTable([3], commanded=False)
+    feed(listening, idle, T0)  # under-voltage is a failure to anyone
+    assert listening.snapshot(T0)[0].failure_flags == FAILURE_GENERIC
+    feed(listening, ck(3, ckesc.Msg1(0, 0, S(0))), T0 + 1)
+    assert listening.snapshot(T0 + 1)[0].failure_flags == 0
+
+
 def test_every_mapped_status_bit_is_a_fault_bit() -> None:
-    mapped = 0
+    mapped = NO_COMMAND
     for bits, _ in STATUS_FAILURES:
+        assert not bits & NO_COMMAND
         mapped |= bits
     informational = S.DIRECTION_CCW | S.THROTTLE_SOURCE_PWM | S.RUNNING
     assert mapped | informational == 0xFFFF
