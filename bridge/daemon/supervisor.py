@@ -264,14 +264,15 @@ class Supervisor:
 
         log.info(
             "output loop: %d ticks, %d frames, %d send errors, %d overruns, %d immediate "
-            "sends, %d tick errors; wake-up lateness p50 %d µs, p99 %d µs, max %d µs "
-            "(last %d ticks)",
+            "sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, p99 %d µs, "
+            "max %d µs (last %d ticks)",
             stats["ticks"],
             stats["frames_sent"],
             stats["send_errors"],
             stats["overruns"],
             stats["immediate_sends"],
             stats["tick_errors"],
+            stats["redecided"],
             at(0.5),
             at(0.99),
             lateness[-1],

@@ -216,7 +216,7 @@ class OutputLoop:
         self._i_state, self._i_ticks = slot("state"), slot("ticks")
         self._i_sent, self._i_tick_errors = slot("frames_sent"), slot("tick_errors")
         self._i_lateness_count, self._i_stop = slot("lateness_count"), slot("stop_requested")
-        self._i_test_motor = slot("motor_test_motor")
+        self._i_test_motor, self._i_redecided = slot("motor_test_motor"), slot("redecided")
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -304,6 +304,17 @@ class OutputLoop:
         frames = selector.select(
             tick, now_ns, self._input.fractions, (now_ns - self._last_ns) / 1e9
         )
+        # The decision holds for ``now_ns``; a loop stopped or starved between taking the time
+        # and sending (SIGSTOP, swap, a higher-priority task) would carry a decision that may
+        # no longer hold, e.g. running commands from an input gone stale meanwhile. A frame
+        # never leaves over a period after the time its decision was made for.
+        sending_ns = time.monotonic_ns()
+        if sending_ns - now_ns > self._period_ns:
+            counters[self._i_redecided] += 1
+            frames = selector.select(
+                tick, sending_ns, self._input.fractions, (sending_ns - now_ns) / 1e9
+            )
+            now_ns = sending_ns
         counters[self._i_state] = selector.state
         counters[self._i_test_motor] = selector.test_index + 1
         counters[self._i_tick_errors] = selector.faults

@@ -201,6 +201,25 @@ def test_tick_stale_input_stops_the_motors_until_a_fresh_one(rig: Rig) -> None:
     assert rig.state() == LoopState.RUNNING
 
 
+def test_tick_held_up_before_sending_decides_again(rig: Rig) -> None:
+    """The loop stopped between taking the time and sending (SIGSTOP, swap, a higher-priority
+    task): the frame carries what holds when it leaves, not what held when the time was
+    taken (an input fresh then and stale now: the safe values, not the running commands)."""
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    taken = time.monotonic_ns()
+    rig.loop.read(taken)
+    time.sleep(INPUT_TIMEOUT_MS / 1000 + 0.05)  # held up: the input went stale meanwhile
+    rig.loop.tick(taken, taken)
+    rig.now_ns = time.monotonic_ns()
+    assert _throttles(rig.observer, 1) == [SAFE]
+    assert rig.state() == LoopState.STALE
+    assert rig.stats["redecided"] >= 1
+    rig.outputs(PWM, count=1)  # in flight again
+    assert rig.tick() == THROTTLES
+
+
 def test_tick_a_slow_stream_never_starts_the_motors(rig: Rig) -> None:
     rig.heartbeat(armed=True)
     slow_s = INPUT_TIMEOUT_MS / 1000 * 0.6  # fewer than two inputs per timeout
