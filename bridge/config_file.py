@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import codecs
 import stat
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from bridge._compat import tomllib
 from bridge.errors import ConfigError
 
 # A config file is a few kB; anything much bigger is the wrong file (or /dev/zero), and is

@@ -22,6 +22,7 @@ from typing import Any
 
 import can
 import pytest
+from hypothesis import HealthCheck, settings
 
 # The simulated autopilot speaks MAVLink 2, as current ArduPilot and PX4 do; pymavlink picks
 # its wire version from this variable when it is first imported.
@@ -29,6 +30,12 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
 from bridge.mavlink import load_dialect
+
+# Hypothesis fails an example that takes over 200 ms (its deadline) and a test whose examples are
+# slow to generate (too_slow); on a loaded machine (the suite's own workers, CI on shared cores)
+# any example can be, and no property test here is about time.
+settings.register_profile("loaded", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("loaded")
 
 ROOT = Path(__file__).resolve().parent.parent
 MULTICAST_GROUP = "239.74.163.2"

@@ -8,11 +8,11 @@ duplicate keys; the rotor outputs' weights come from the geometry
 from __future__ import annotations
 
 import re
-import tomllib
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 
+from bridge._compat import tomllib
 from bridge.errors import ConfigError
 from bridge.mixing.definition import AXIS_NAMES, PWM_RANGE_US, MixerDefinition, OutputSpec, Rotor
 from bridge.mixing.geometry import mix_matrix

@@ -18,8 +18,9 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from types import TracebackType
-from typing import TYPE_CHECKING, Protocol, Self
+from typing import TYPE_CHECKING, Protocol
 
+from bridge._compat import Self
 from bridge.can_io import check_interface, open_bus
 from bridge.config import BridgeConfig, ZenohConfig
 from bridge.errors import ConfigError, LinkError, PayloadError

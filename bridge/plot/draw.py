@@ -70,7 +70,7 @@ OVERVIEW: Final = "overview.png"
 
 def start_text(flight: Flight) -> str:
     """The recording's start, for axis labels: UTC date and time."""
-    start = datetime.datetime.fromtimestamp(flight.start_wall_s, datetime.UTC)
+    start = datetime.datetime.fromtimestamp(flight.start_wall_s, datetime.timezone.utc)
     return start.strftime("%Y-%m-%d %H:%M:%S UTC")
 
 

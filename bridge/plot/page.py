@@ -63,7 +63,7 @@ def _failures(esc: EscSeries) -> str:
 
 def page_html(flight: Flight, pictures: Sequence[str]) -> str:
     """The page for ``flight``, showing ``pictures`` (file names beside the page) in order."""
-    start = datetime.datetime.fromtimestamp(flight.start_wall_s, datetime.UTC)
+    start = datetime.datetime.fromtimestamp(flight.start_wall_s, datetime.timezone.utc)
     can = flight.can
     title = escape(flight.name)
     parts = [

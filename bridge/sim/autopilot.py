@@ -44,8 +44,9 @@ import threading
 import time
 from collections.abc import Sequence
 from types import TracebackType
-from typing import Any, Final, Literal, Self
+from typing import Any, Final, Literal
 
+from bridge._compat import Self
 from bridge.mavlink import load_dialect
 from bridge.mixing.geometry import mix_matrix
 from bridge.mixing.loader import load_mixer

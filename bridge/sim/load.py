@@ -84,8 +84,9 @@ from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, Final, Literal, Self, TypeAlias
+from typing import IO, Any, Final, Literal, TypeAlias
 
+from bridge._compat import Self
 from bridge.errors import BridgeError, ConfigError
 
 __all__ = [

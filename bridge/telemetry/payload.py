@@ -30,8 +30,9 @@ import math
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar
 
+from bridge._compat import Self
 from bridge.errors import PayloadError
 from bridge.telemetry.state import EscSnapshot
 

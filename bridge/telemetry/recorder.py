@@ -22,10 +22,11 @@ import threading
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO, Self, TextIO
+from typing import BinaryIO, TextIO
 
 import can
 
+from bridge._compat import Self
 from bridge.config import CanConfig
 from bridge.errors import ConfigError
 

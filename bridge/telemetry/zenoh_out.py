@@ -170,7 +170,8 @@ def session_config(config: ZenohConfig) -> zenoh.Config:
     if listen:
         settings.append(("listen", "listen/endpoints", listen))
     settings.append(("multicast_scouting", "scouting/multicast/enabled", config.multicast_scouting))
-    zconfig = zenoh.Config()
+    # Annotated: zenoh's stub types the constructor with typing.Self, which is Any as Python 3.10.
+    zconfig: zenoh.Config = zenoh.Config()
     for name, path, value in settings:
         try:
             zconfig.insert_json5(path, json.dumps(value))

@@ -386,7 +386,8 @@ def test_the_new_keys_are_described() -> None:
         (b"[output]\nrate_hz = 1\x00\n", "a binary file (NUL byte at offset 20)"),
         (b"[output\n", "not valid TOML"),
         (b"x = " + b"[" * 5000 + b"]" * 5000, "nested too deeply"),
-        (b"[mavlink]\nstream_rate_hz = " + b"9" * 5000, "Exceeds the limit (4300 digits)"),
+        # Python's own words, which go on differently in 3.10 and 3.11.
+        (b"[mavlink]\nstream_rate_hz = " + b"9" * 5000, "Exceeds the limit (4300"),
         (b"x" * (1024 * 1024 + 1), "larger than 1024 KiB"),
     ],
     ids=["non-utf8", "bad-after-bom", "elf", "nul", "toml", "nested", "digits", "big"],

@@ -10,7 +10,6 @@ import socket
 import subprocess
 import sys
 import time
-import tomllib
 import uuid
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from typing import Any
 import pytest
 from pymavlink import mavutil
 
+from bridge._compat import tomllib
 from bridge.config import build_config
 from bridge.daemon import preflight
 from bridge.demo.system import (

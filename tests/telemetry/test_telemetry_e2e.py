@@ -472,9 +472,22 @@ def test_output_rate_holds_with_zenoh_unreachable(
     assert "Zenoh" in daemon.output
 
 
+def recorded_types(directory: Path) -> set[int]:
+    """The CKESC data types in a recording's candump log so far (a line still being written, with
+    no ``#`` yet, is skipped)."""
+    found = set()
+    for path in directory.glob("*.log"):
+        for line in path.read_text(encoding="ascii", errors="replace").splitlines():
+            fields = line.split()
+            if len(fields) == 3 and "#" in fields[2]:
+                found.add(int(fields[2].partition("#")[0], 16) >> 8 & 0xFFFF)
+    return found
+
+
 def test_record_writes_a_decodable_capture_and_tlog(
     tmp_path: Path,
     can_port: int,
+    observer: Observer,
     autopilot: Autopilot,
     start_daemon: Callable[..., Daemon],
 ) -> None:
@@ -487,7 +500,24 @@ def test_record_writes_a_decodable_capture_and_tlog(
         autopilot.armed = True
         autopilot.pwm = [1250] * 4
         autopilot.start_stream(50)
-        time.sleep(3.0)
+
+        def commands_1250_us(msg: can.Message) -> bool:
+            frame = ckesc.decode(msg)
+            return (
+                frame is not None
+                and isinstance(frame.message, ckesc.RawCommand12b)
+                and frame.message.throttles == (500,) * 4
+            )
+
+        # Until the recording holds the commands and every report (the recorder flushes at
+        # least once a second), however long the daemon's start-up takes on a loaded machine.
+        observer.wait_for(commands_1250_us, timeout_s=30)
+        wanted = {ckesc.TYPE_RAW_COMMAND_12B, ckesc.TYPE_MSG1, ckesc.TYPE_MSG2, ckesc.TYPE_MSG3}
+        deadline = time.monotonic() + 30
+        while not wanted <= recorded_types(record) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        on_bus = {m.arbitration_id >> 8 & 0xFFFF for m in observer.since(0.0)}
+        assert wanted <= on_bus, f"not even on the bus: {wanted - on_bus}"
     finally:
         escs.close()
     assert daemon.stop() == 0

@@ -35,7 +35,7 @@ from bridge.telemetry.payload import (
     HealthPayload,
 )
 from bridge.telemetry.state import EscTable
-from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut, session_config
+from bridge.telemetry.zenoh_out import CLOSE_TIMEOUT_S, TelemetrySources, ZenohOut, session_config
 
 TIMEOUT_S = 5.0
 JSON = "application/json"
@@ -208,9 +208,7 @@ def bridge() -> Iterator[Callable[..., Bridge]]:
             **config,
         )
         out = ZenohOut(zconfig, sources)
-        started = time.monotonic()
-        out.start()
-        assert time.monotonic() - started < 0.1, "start() must not wait for Zenoh"
+        out.start()  # that it does not wait for Zenoh: test_close_is_prompt_when_zenoh_hangs
         made.append(Bridge(out, port))
         return made[-1]
 
@@ -375,7 +373,9 @@ def test_queryable_answers_the_latest_values(
     assert b.out.stats.errors == 0  # no reply was refused for a key outside the selector
 
 
-def test_liveliness_token_lives_until_close(bridge: Callable[..., Bridge], table: EscTable) -> None:
+def test_liveliness_token_lives_until_close(
+    bridge: Callable[..., Bridge], table: EscTable, caplog: pytest.LogCaptureFixture
+) -> None:
     b = bridge(make_sources(table))
     session = b.connect()
     alive = b.key("alive")
@@ -393,9 +393,9 @@ def test_liveliness_token_lives_until_close(bridge: Callable[..., Bridge], table
     collector = Collector(session, b.key("**"))
     collector.wait_for(b.key("esc/status"))
 
-    started = time.monotonic()
     b.out.close()
-    assert time.monotonic() - started < 2.0
+    # Closed, not given up on (close() warns when it stops waiting for the session to close).
+    assert not any("did not close" in r.getMessage() for r in caplog.records)
     wait_until(lambda: zenoh.SampleKind.DELETE in kinds, "the token's disappearance")
     assert tokens() == []
     assert not b.out.stats.session_up
@@ -465,9 +465,7 @@ def test_unreachable_zenoh_never_holds_up_the_bridge(
         vehicle="unreachable",
     )
     out = ZenohOut(config, make_sources(table))
-    started = time.monotonic()
     out.start()
-    assert time.monotonic() - started < 0.1
     try:
         time.sleep(1.8)  # attempts at about 0, 0.5 and 1.5 s
         stats = out.stats
@@ -475,9 +473,9 @@ def test_unreachable_zenoh_never_holds_up_the_bridge(
         assert (stats.published, stats.errors, stats.peers) == (0, 0, 0)
         assert stats.dropped > 0
     finally:
-        started = time.monotonic()
         out.close()
-        assert time.monotonic() - started < 0.5
+    # The one warning is the failed open: close() found the thread between attempts and joined
+    # it (had it given up waiting, "did not close" would be a second warning).
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1, [r.getMessage() for r in warnings]
     assert "cannot open a session" in warnings[0].getMessage()
@@ -486,12 +484,18 @@ def test_unreachable_zenoh_never_holds_up_the_bridge(
     assert not out.stats.session_up
 
 
+HANG_S = 10.0
+"""How long Zenoh waits on a router that never answers: a client's open, a peer session's close."""
+
+
 @pytest.mark.parametrize("mode", ["client", "peer"])
 def test_close_is_prompt_when_zenoh_hangs(
     table: EscTable, caplog: pytest.LogCaptureFixture, mode: Literal["client", "peer"]
 ) -> None:
     """A "router" that accepts TCP connections but never answers: a client's open waits ~10 s
-    for its handshake, and a peer session that opened takes ~10 s to close."""
+    for its handshake, and a peer session that opened takes ~10 s to close. Neither start() nor
+    close() may wait for that: each must return in well under those 10 s (the bound, half of
+    them, leaves seconds for a loaded machine; close() itself gives up after CLOSE_TIMEOUT_S)."""
     with socket.socket() as silent:
         silent.bind(("127.0.0.1", 0))
         silent.listen(8)
@@ -505,7 +509,7 @@ def test_close_is_prompt_when_zenoh_hangs(
         out = ZenohOut(config, make_sources(table))
         started = time.monotonic()
         out.start()
-        assert time.monotonic() - started < 0.1
+        assert time.monotonic() - started < HANG_S / 2, "start() waited for Zenoh"
         try:
             if mode == "client":
                 time.sleep(0.5)
@@ -515,8 +519,9 @@ def test_close_is_prompt_when_zenoh_hangs(
         finally:
             started = time.monotonic()
             out.close()
-            assert time.monotonic() - started < 2.0
+            assert time.monotonic() - started < HANG_S / 2, "close() waited for Zenoh"
     assert any("did not close" in r.getMessage() for r in caplog.records)
+    assert CLOSE_TIMEOUT_S < HANG_S / 2  # else the bound above could not hold
 
 
 def test_comes_up_when_the_router_appears_and_counts_reconnects(

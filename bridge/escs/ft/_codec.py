@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Final, NamedTuple, TypeAlias, assert_never
+from typing import Final, NamedTuple, TypeAlias
 
 import can
 
+from bridge._compat import assert_never
 from bridge.errors import (
     CrcError,
     DlcError,
