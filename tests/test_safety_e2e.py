@@ -317,6 +317,39 @@ def test_grossly_out_of_range_pwm_is_invalid_never_full_throttle(
     assert "FAILSAFE invalid input" in daemon.output
 
 
+def test_a_failsafe_while_the_main_process_stalls_is_still_reported(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
+) -> None:
+    """A failsafe that begins and ends while the main process is stopped (swap, a GC pause,
+    starvation): the loop keeps obeying the autopilot, and once the main process runs again it
+    reports the failsafe it did not see, then the state the loop is in."""
+    daemon = start_daemon()
+    arm_at(autopilot, [1500] * 4)
+    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    os.kill(daemon.proc.pid, signal.SIGSTOP)  # the main process: the supervisor, the log
+    try:
+        bad_at = time.monotonic()
+        autopilot.pwm = [1500, 799, 1500, 1500]
+        expect_throttles(observer, SAFE, 2.0, after=bad_at)
+        good_at = time.monotonic()
+        autopilot.pwm = [1500] * 4
+        expect_throttles(observer, HOVER, 2.0, after=good_at)
+    finally:
+        os.kill(daemon.proc.pid, signal.SIGCONT)
+    time.sleep(1.0)  # the supervisor looks ten times a second
+    daemon.stop()
+    reports = [
+        line.split("esc-bridge ")[-1] for line in daemon.output.splitlines() if "ESC out:" in line
+    ]
+    # The states entered during the stall come in one look, so not necessarily in their order;
+    # the loop's state when the main process ran again (armed) is reported last.
+    assert reports.count("ESC out: FAILSAFE invalid input, motors stopped") == 1, reports
+    assert reports[-2:] == [
+        "ESC out: armed, sending motor commands",
+        "ESC out: shutting down, motors stopped",
+    ], reports
+
+
 @pytest.mark.parametrize("value", [1e38, -1e38, 1.6])
 def test_out_of_range_floats_on_a_float_source_are_invalid(
     start_daemon: Callable[..., Daemon], mavlink_port: int, observer: Observer, value: float

@@ -125,6 +125,7 @@ class Supervisor:
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
+        self._entered = [0] * len(LoopState)
         self._last_errors = 0
         self._errors_logged_at = 0.0
         self._tick_errors = 0
@@ -230,11 +231,7 @@ class Supervisor:
                 ),
             )
         self.health_report.sample()
-        state = LoopState(stats["state"])
-        if state != self._reported_state and state in STATE_REPORTS:
-            severity, text = STATE_REPORTS[state]
-            self._report(severity, text)
-        self._reported_state = state
+        self._report_states()
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]
         if tick_errors != self._tick_errors:
@@ -252,6 +249,24 @@ class Supervisor:
             )
             self._last_errors = errors
             self._errors_logged_at = now
+
+    def _report_states(self) -> None:
+        """Report each state the loop entered since the last look, the current one last: a
+        failsafe shorter than the watch's period (or than a stall of this process) is still
+        told, by its entry count in the loop's statistics."""
+        stats = self.stats
+        state = LoopState(stats["state"])
+        entered = stats.state_entries()
+        for passed, (severity, text) in STATE_REPORTS.items():
+            if passed != state and entered[passed] != self._entered[passed]:
+                self._report(severity, text)
+        if state in STATE_REPORTS and (
+            state != self._reported_state or entered[state] != self._entered[state]
+        ):
+            severity, text = STATE_REPORTS[state]
+            self._report(severity, text)
+        self._reported_state = state
+        self._entered = entered
 
     def _log_loop_summary(self) -> None:
         stats = self.stats

@@ -279,6 +279,9 @@ STAT_FIELDS = (
     "link_dropped",  # frames for the autopilot link dropped (link down or full)
     "link_reconnects",
     "input_age_us",  # age of the newest input when it was acted on (produced -> acted), µs
+    # How many times the loop entered each state, in LoopState's order: the supervisor reports
+    # every state entered since it last looked, even one left again before it looked.
+    *(f"entered_{state.name.lower()}" for state in LoopState),
 )
 LATENESS_RING = 1 << 16  # wake-up lateness samples kept, µs; enough for 160 s at 400 Hz
 
@@ -301,6 +304,11 @@ class LoopStats:
 
     def __setitem__(self, name: str, value: int) -> None:
         self._counters[self._index[name]] = value
+
+    def state_entries(self) -> list[int]:
+        """How many times the loop entered each state, indexed by :class:`LoopState`."""
+        first = self._index["entered_starting"]
+        return list(self._counters[first : first + len(LoopState)])
 
     def slot(self, name: str) -> int:
         """The index of a counter, for the loop's hot path (no dict lookup per tick)."""

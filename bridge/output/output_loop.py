@@ -217,6 +217,7 @@ class OutputLoop:
         self._i_sent, self._i_tick_errors = slot("frames_sent"), slot("tick_errors")
         self._i_lateness_count, self._i_stop = slot("lateness_count"), slot("stop_requested")
         self._i_test_motor, self._i_redecided = slot("motor_test_motor"), slot("redecided")
+        self._i_entered = slot("entered_starting")  # + a LoopState: its entry count
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -315,7 +316,10 @@ class OutputLoop:
                 tick, sending_ns, self._input.fractions, (sending_ns - now_ns) / 1e9
             )
             now_ns = sending_ns
-        counters[self._i_state] = selector.state
+        state = selector.state
+        if state != counters[self._i_state]:
+            counters[self._i_entered + state] += 1
+        counters[self._i_state] = state
         counters[self._i_test_motor] = selector.test_index + 1
         counters[self._i_tick_errors] = selector.faults
         counters[self._i_sent] += self._send(frames, now_ns)
