@@ -81,7 +81,11 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
     (files,) = find_recordings(record)
     flight = load_flight(files)
     (armed,) = flight.spans_of(ARMED)
-    (failsafe,) = flight.spans_of(FAILSAFE)
+    # The pause's failsafe is the last; on a loaded machine this test's autopilot thread may
+    # also have stalled past the input timeout earlier, which the bridge rightly reported too.
+    failsafes = flight.spans_of(FAILSAFE)
+    failsafe = failsafes[-1]
+    assert all(armed.start_s < f.start_s <= f.end_s <= armed.end_s + 0.5 for f in failsafes)
     assert failsafe.label == "FAILSAFE input stale, motors stopped"
     assert armed.start_s < failsafe.start_s < armed.end_s
     assert failsafe.end_s == pytest.approx(armed.end_s, abs=0.5)  # until the disarm's report
@@ -95,7 +99,7 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
         [ESC_BRIDGE, "plot", str(record)], capture_output=True, text=True, timeout=60, check=False
     )
     assert result.returncode == 0, result.stderr
-    assert "1 failsafe" in result.stdout and "1 armed" in result.stdout
+    assert f"{len(failsafes)} failsafe" in result.stdout and "1 armed" in result.stdout
     picture = record / f"{files.name}-plot" / "esc-2.png"
     assert mpl_image.imread(picture).shape == (1100, 1400, 4)
     page = (record / f"{files.name}-plot" / "index.html").read_text()

@@ -65,6 +65,7 @@ ARDUPILOT_SERIAL_PORTS = (5760, 5762, 5763)
 ARDUPILOT_TCP_BASE = 5760
 # The sim's own UDP port (RC input) at instance 0, also shifted by 10·N.
 ARDUPILOT_UDP_PORTS = (5501,)
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux's; Python names it from 3.12
 
 
 # --------------------------------------------------------------------------------------------
@@ -204,17 +205,22 @@ def reserved_instance(
         yield n
 
 
-def widen_receive_buffer(bus: Any, size: int = 4 << 20) -> None:
+def widen_receive_buffer(bus: Any, size: int = 64 << 20) -> None:
     """Let an observer's udp_multicast socket queue ``size`` bytes: a thread in a busy test
     process may not read for a while, and ~1 600 frames/s (an FT bus) would overflow the
-    default buffer within a tenth of a second. (A duplicate of the descriptor shares the
-    socket, so closing it leaves the bus's own open.)"""
+    default buffer within a tenth of a second. With CAP_NET_ADMIN (root) past the system's
+    ``net.core.rmem_max`` (4 MiB here, some 5 s of an FT bus: the whole suite beside two busy
+    processes starved a PX4 flight's observer longer); otherwise up to it. (A duplicate of the
+    descriptor shares the socket, so closing it leaves the bus's own open.)"""
     with socket.fromfd(bus.fileno(), socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, size)
+        except PermissionError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
 
 
 def wide_observer(can_port: int) -> Observer:
-    """An observer of the bus at ``can_port`` whose socket queues 4 MiB (see
+    """An observer of the bus at ``can_port`` whose socket queues 64 MiB where allowed (see
     :func:`widen_receive_buffer`); ask :func:`udp_drops` afterwards whether it lost any."""
     observer = Observer(can_port)
     widen_receive_buffer(observer.bus)
