@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -231,12 +232,18 @@ def _monitor(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return EXIT_OK
+    # Ctrl-C from here on is a flag the refresh loop reads, never a KeyboardInterrupt: one
+    # raised inside the table's lock leaves it held, and the final table then waits for ever
+    # (a monitor that ignored Ctrl-C for 15 s at load 8).
+    pressed: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: pressed.append(signum))
     try:
         if args.plain or not sys.stdout.isatty():
-            _monitor_plain(lambda: _monitor_text(source), args.duration)
+            _monitor_plain(lambda: _monitor_text(source), args.duration, lambda: bool(pressed))
         else:
-            _monitor_live(source, args.duration)
+            _monitor_live(source, args.duration, lambda: bool(pressed))
     finally:
+        signal.signal(signal.SIGINT, previous)
         source.close()
     return EXIT_OK
 
@@ -248,17 +255,17 @@ def _monitor_text(source: Any) -> str:
     return monitor.plain_text(vehicles) if vehicles else monitor.waiting_text(source.where)
 
 
-def _monitor_plain(text: Callable[[], str], duration: float | None) -> None:
+def _monitor_plain(
+    text: Callable[[], str], duration: float | None, stopped: Callable[[], bool]
+) -> None:
     from bridge import monitor
 
-    try:
-        for _ in monitor.schedule(monitor.PLAIN_PERIOD_S, duration):
-            print(text(), end="\n\n", flush=True)
-    except KeyboardInterrupt:
-        print(text(), flush=True)  # Ctrl-C: the final table, as at the end of --duration
+    # The last one (after --duration or Ctrl-C) is the final table.
+    for _ in monitor.schedule(monitor.PLAIN_PERIOD_S, duration, stopped):
+        print(text(), end="\n\n", flush=True)
 
 
-def _monitor_live(source: Any, duration: float | None) -> None:
+def _monitor_live(source: Any, duration: float | None, stopped: Callable[[], bool]) -> None:
     from rich.console import Console, RenderableType
     from rich.live import Live
     from rich.text import Text
@@ -272,8 +279,5 @@ def _monitor_live(source: Any, duration: float | None) -> None:
         return monitor.render_table(vehicles)
 
     with Live(view(), console=Console(), auto_refresh=False) as live:
-        try:
-            for _ in monitor.schedule(monitor.LIVE_PERIOD_S, duration):
-                live.update(view(), refresh=True)
-        except KeyboardInterrupt:
+        for _ in monitor.schedule(monitor.LIVE_PERIOD_S, duration, stopped):
             live.update(view(), refresh=True)

@@ -8,7 +8,7 @@ redraws. The CLI prints; nothing here does.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from bridge.monitor.sources import (
     DEFAULT_PREFIX,
@@ -35,21 +35,31 @@ PLAIN_PERIOD_S = 1.0
 """Period of the plain-text tables printed when stdout is not a terminal."""
 
 
-def schedule(period_s: float, duration_s: float | None = None) -> Iterator[bool]:
+STOP_POLL_S = 0.05
+"""How often a schedule looks at its stop flag while it waits for the next redraw."""
+
+
+def schedule(
+    period_s: float,
+    duration_s: float | None = None,
+    stopped: Callable[[], bool] = lambda: False,
+) -> Iterator[bool]:
     """Yield at once and then every ``period_s`` (never in a burst after a stall); when
-    ``duration_s`` has passed, yield ``True`` once more (the final redraw) and stop."""
+    ``duration_s`` has passed or ``stopped()`` says so (Ctrl-C), yield ``True`` once more (the
+    final redraw) and stop."""
     start = time.monotonic()
     end = None if duration_s is None else start + duration_s
     due = start
     while True:
         now = time.monotonic()
-        if end is not None and now >= end:
+        if (end is not None and now >= end) or stopped():
             yield True
             return
         yield False
         due = max(due + period_s, now)
         wake = due if end is None else min(due, end)
-        time.sleep(max(0.0, wake - time.monotonic()))
+        while (left := wake - time.monotonic()) > 0 and not stopped():
+            time.sleep(min(left, STOP_POLL_S))
 
 
 __all__ = [
