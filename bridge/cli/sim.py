@@ -150,7 +150,6 @@ def sim_config(args: argparse.Namespace) -> BridgeConfig:
 
 def _sim(args: argparse.Namespace) -> int:
     import signal
-    import threading
     import time
 
     logging.basicConfig(
@@ -179,8 +178,14 @@ def _sim(args: argparse.Namespace) -> int:
         print(f"esc-bridge: {exc}", file=sys.stderr)
         return EXIT_USAGE
     log = logging.getLogger("bridge.sim")
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # SIGTERM and Ctrl-C are a flag the loop below reads: a KeyboardInterrupt raised inside a
+    # lock of the simulator's leaves it held (the sim once ignored Ctrl-C for 10 s at load 8),
+    # and Event.set() from a handler can deadlock on the Event's own lock.
+    stopped: list[int] = []
+    previous = {
+        sig: signal.signal(sig, lambda signum, _frame: stopped.append(signum))
+        for sig in (signal.SIGTERM, signal.SIGINT)
+    }
     sim = Simulator(
         bus, escs, battery=Battery(cells=args.battery_cells), faults=faults, own_bus=True
     )
@@ -197,19 +202,18 @@ def _sim(args: argparse.Namespace) -> int:
         start = time.monotonic()
         end = None if args.duration is None else start + args.duration
         next_status = start + args.status_interval
-        while not stop.is_set() and sim.running:
+        while not stopped and sim.running:
             now = time.monotonic()
             if end is not None and now >= end:
                 break
             if now >= next_status:
                 log.info("%s", sim.status_line())
                 next_status = max(next_status + args.status_interval, now)
-            stop.wait(min(0.1, next_status - now, (end or next_status) - now))
-    except KeyboardInterrupt:
-        pass
+            time.sleep(max(0.0, min(0.1, next_status - now, (end or next_status) - now)))
     finally:
         sim.close()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     log.info("stopped: %s", sim.status_line())
     if sim.error is not None:
         print(f"esc-bridge: error: simulator stopped: {sim.error}", file=sys.stderr)
