@@ -428,7 +428,7 @@ def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
 ) -> None:
     """Two busy processes on both cores, or a flood of junk on the CAN bus, for 8 s armed: the
     autopilot streams at 200 Hz from a real-time process and the bridge never goes safe."""
-    start_daemon()
+    daemon = start_daemon()
     pilot = rt_autopilot([1500] * 4)
     expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
     loads = preset("busy2") if load == "busy2" else preset("can-flood-60k", can_port=can_port)
@@ -439,7 +439,11 @@ def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
     seen = [t for ts, t in throttles_since(observer, start) if ts <= end]
     assert pilot.largest_gap_ms < 50, "the autopilot itself stalled: not the bridge's fault"
     # The observer is a thread of this test, not real-time, and under the flood it reads every
-    # junk frame too: on a machine at load 11 it kept 36 % of the commands. Enough of them to
-    # mean something.
-    assert len(seen) > 8 * 400 * 0.1
+    # junk frame too: on a machine at load 11 it kept 36 % of the commands, beside the whole
+    # suite and two busy processes 9 %. Enough of them to mean something; the bridge's own
+    # reports below cover every tick.
+    assert len(seen) > 8 * 400 * 0.05
     assert [t for t in seen if t != HOVER] == []
+    # The loop reports every state it enters, however briefly: no failsafe at all.
+    assert daemon.stop() == 0
+    assert "FAILSAFE" not in daemon.output, daemon.output[-3000:]

@@ -16,7 +16,7 @@ from conftest import ESC_BRIDGE, Autopilot, Daemon, Observer, can_args
 
 from bridge.errors import FrameError
 from bridge.escs import ckesc
-from bridge.escs.family import FAILURE_OVER_TEMPERATURE
+from bridge.escs.family import FAILURE_GENERIC, FAILURE_OVER_TEMPERATURE
 from bridge.plot.flight import load_flight
 from bridge.plot.recording import find_recordings
 from bridge.plot.spans import ARMED, FAILSAFE, STOPPED_ARMED
@@ -91,9 +91,19 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
     assert failsafe.end_s == pytest.approx(armed.end_s, abs=0.5)  # until the disarm's report
     stops = flight.spans_of(STOPPED_ARMED)
     assert any(s.start_s < failsafe.start_s + 0.5 and s.end_s > failsafe.end_s - 0.5 for s in stops)
-    failing = {esc.node_id: esc.failures for esc in flight.escs}
-    assert failing[2] and all(r.flags & FAILURE_OVER_TEMPERATURE for r in failing[2])
-    assert not failing[1] and not failing[3] and not failing[4]
+    # Besides ESC 2's over-temperature, an ESC may have said "no command received" (generic)
+    # for a few ms at the start, before the bridge's first command reached it (0.81-0.83 s into
+    # a recording at load 8): a generic run that began before the arming is that.
+    failing = {
+        esc.node_id: [
+            r
+            for r in esc.failures
+            if not (r.flags == FAILURE_GENERIC and r.start_s < armed.start_s)
+        ]
+        for esc in flight.escs
+    }
+    assert failing[2] and all(r.flags & FAILURE_OVER_TEMPERATURE for r in failing[2]), failing
+    assert not failing[1] and not failing[3] and not failing[4], failing
 
     result = subprocess.run(
         [ESC_BRIDGE, "plot", str(record)], capture_output=True, text=True, timeout=60, check=False
