@@ -507,7 +507,10 @@ def test_silent_escs_go_stale(run: Run) -> None:
     fed_until = last + period + SLACK_S
     after = run.ap_telemetry(fed_until + 1 / AP_TELEMETRY_HZ)
     assert after, "no ESC_TELEMETRY from ArduCopter after the silence"
-    assert len({tuple(m.count) for _, m in after}) == 1, "ArduCopter's ESC counters moved on"
+    # The script's last update may reach ArduCopter's ESC_TELEMETRY a quarter second later on a
+    # loaded machine (one more count came in a CI run beside two busy processes).
+    settled = [m for t, m in after if t >= fed_until + 0.25 + 1 / AP_TELEMETRY_HZ]
+    assert len({tuple(m.count) for m in settled}) == 1, "ArduCopter's ESC counters moved on"
     motor = run.test_motor
     held = [m.rpm[motor] for t, m in after if t < last + AP_RPM_TIMEOUT_S - 0.1]
     assert held and min(held) > 5000, f"the rpm was not held until the timeout: {held}"
