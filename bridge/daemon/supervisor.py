@@ -125,16 +125,24 @@ class Supervisor:
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
+        self._stop_reason = ""
         self._entered = [0] * len(LoopState)
         self._last_errors = 0
         self._errors_logged_at = 0.0
         self._tick_errors = 0
 
-    def stop(self) -> None:
+    def stop(self, reason: str = "") -> None:
         """Stop: the loop starts its safe flush on its next tick (the request is one store to
-        shared memory, fine from a signal handler), and the supervisor winds down."""
+        shared memory, fine from a signal handler), and the supervisor winds down, logging
+        ``reason`` (e.g. the signal's name) then: a signal handler must not log, since it may
+        interrupt the main thread inside a write to the same stream ("reentrant call")."""
+        self._stop_reason = self._stop_reason or reason
         self.runner.request_stop()
         self._stop.set()
+
+    def _log_stop_reason(self) -> None:
+        if self._stop_reason:
+            log.info("%s: stopping", self._stop_reason)
 
     def run(self) -> int:
         config = self._config
@@ -149,6 +157,7 @@ class Supervisor:
             self._plan.load_text,
         )
         if self._stop.is_set():
+            self._log_stop_reason()
             log.info("stopped before starting: nothing was sent")
             return 0
         self.link.start()
@@ -162,6 +171,7 @@ class Supervisor:
                 if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
                     return self._loop_died()
                 self._watch()
+            self._log_stop_reason()
             self.runner.request_stop()
             self.runner.join(config.output.shutdown_flush_ms / 1000 + 5.0)
             self._watch()
@@ -335,8 +345,7 @@ def run(
     supervisor = Supervisor(checked, record_dir)
 
     def on_signal(sig: signal.Signals) -> None:
-        log.info("%s: stopping", sig.name)
-        supervisor.stop()
+        supervisor.stop(sig.name)
 
     stop_signals.on_stop(on_signal)
     return supervisor.run()
