@@ -357,7 +357,7 @@ class Demo:
         self.record.update(vehicles)
         now = time.monotonic()
         if self.flying_since is None:
-            if vehicles and self.first_status is None:
+            if any(v.escs for v in vehicles) and self.first_status is None:
                 self.first_status = now
             ready = all_online(vehicles, self.options.escs)
             waited = self.first_status is not None and now - self.first_status > ALL_ONLINE_WAIT_S

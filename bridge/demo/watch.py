@@ -1,33 +1,22 @@
-"""What ``esc-bridge demo`` watches of the bridge: the monitor's Zenoh source, also following
-``bridge/health``, and the per-ESC record the summary at the end is made of."""
+"""What ``esc-bridge demo`` watches of the bridge: the monitor's Zenoh source, connected to the
+demo's bridge, and the per-ESC record the summary at the end is made of."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Final
+from typing import Final
 
 from bridge.config import ZenohConfig
-from bridge.errors import PayloadError
-from bridge.monitor import STALE_AFTER_S, VehicleState, ZenohSource, monitor_zenoh_config
-from bridge.telemetry.payload import HealthPayload
-
-if TYPE_CHECKING:
-    import zenoh
+from bridge.monitor import VehicleState, ZenohSource, monitor_zenoh_config
 
 VEHICLE: Final = "demo"
 PREFIX: Final = f"esc-bridge/{VEHICLE}"
-HEALTH_KEY: Final = f"{PREFIX}/bridge/health"
 LOOPBACK: Final = "127.0.0.1"
 
 
 class DemoSource(ZenohSource):
-    """The monitor's source, also following the bridge's ``bridge/health``."""
-
-    def __init__(self, prefix: str, stale_after_s: float = STALE_AFTER_S) -> None:
-        super().__init__(prefix, stale_after_s)
-        self.health: HealthPayload | None = None
-        """The last ``bridge/health`` payload."""
+    """The monitor's source, connected to the demo's bridge."""
 
     @classmethod
     def connect(cls, endpoint: str) -> DemoSource:
@@ -44,21 +33,13 @@ class DemoSource(ZenohSource):
         settings = replace(monitor_zenoh_config(bridge_side), listen=(f"tcp/{LOOPBACK}:0",))
         source = cls.open(settings, PREFIX)
         assert isinstance(source, DemoSource)
-        session = source._session
-        if session is not None:
-            session.declare_subscriber(HEALTH_KEY, source._on_health)
         return source
 
     @property
     def state(self) -> str | None:
         """The bridge's output loop state (``running``, ``disarmed``, ...), if heard."""
-        return None if self.health is None else self.health.state
-
-    def _on_health(self, sample: zenoh.Sample) -> None:
-        try:
-            self.health = HealthPayload.decode(sample.payload.to_bytes())
-        except PayloadError as exc:
-            self._count_bad(exc)
+        health = next((v.health for v in self.vehicles() if v.health is not None), None)
+        return None if health is None else health.state
 
 
 @dataclass

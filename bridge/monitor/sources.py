@@ -3,8 +3,10 @@
 Both sources give the same thing, :meth:`vehicles`: the latest ESC telemetry records per vehicle
 (:class:`~bridge.monitor.view.VehicleState`), taken whenever the screen is redrawn. Over Zenoh,
 each payload is decoded by :mod:`bridge.telemetry.payload`; one that is not what its key
-carries is counted and dropped. Neither
-ever sends anything to the ESCs: the CAN source opens the bus and only reads it.
+carries is counted and dropped. A bridge is known from its first ``esc/status`` or from its
+liveliness token (``<prefix>/alive``), whichever comes first, and is never forgotten: when it
+goes quiet or its token goes away it stays, stale. Neither source ever sends anything to the
+ESCs: the CAN source opens the bus and only reads it.
 
 Only :class:`ZenohSource` imports zenoh (through :mod:`bridge.telemetry.zenoh_out`), and only
 when opened.
@@ -27,7 +29,12 @@ from bridge.errors import ConfigError, LinkError, PayloadError
 from bridge.escs import registry
 from bridge.monitor.view import EscRow, VehicleState
 from bridge.telemetry.for_config import esc_table
-from bridge.telemetry.payload import EscInfoPayload, EscStatusPayload, EscTelemetryPayload
+from bridge.telemetry.payload import (
+    EscInfoPayload,
+    EscStatusPayload,
+    EscTelemetryPayload,
+    HealthPayload,
+)
 from bridge.telemetry.reader import CanReader
 
 if TYPE_CHECKING:
@@ -42,6 +49,8 @@ STALE_AFTER_S = 1.0
 """A vehicle with no ``esc/status`` for longer than this is shown as stale."""
 STATUS_SUFFIX = "esc/status"
 INFO_SUFFIX = "esc/*/info"
+HEALTH_SUFFIX = "bridge/health"
+ALIVE_SUFFIX = "alive"
 _BRIDGE_PREFIX = "esc-bridge/"
 # Endpoints a bridge listens on that a monitor on the same host reaches through loopback.
 _WILDCARD_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
@@ -116,6 +125,9 @@ class _Vehicle:
     escs: tuple[EscTelemetryPayload, ...] = ()
     received: float | None = None  # monotonic time of the last esc/status
     info: dict[int, EscInfoPayload] = field(default_factory=dict)
+    health: HealthPayload | None = None
+    alive: bool | None = None  # its liveliness token: there, gone, never seen
+    gone_at: float = 0.0  # monotonic time its token last went away
 
     def row(self, esc: EscTelemetryPayload) -> EscRow:
         info = self.info.get(esc.motor)
@@ -123,8 +135,10 @@ class _Vehicle:
 
 
 class ZenohSource:
-    """Subscribes to ``<prefix>/esc/status`` (and ``esc/*/info`` for frame and error counts)
-    with a Zenoh session of its own; :meth:`vehicles` gives the latest per vehicle."""
+    """Subscribes to ``<prefix>/esc/status`` (and ``esc/*/info`` for frame and error counts,
+    ``bridge/health`` for the bridge's state, the ``alive`` liveliness tokens for bridges
+    coming and going) with a Zenoh session of its own; :meth:`vehicles` gives the latest per
+    vehicle."""
 
     def __init__(self, prefix: str, stale_after_s: float = STALE_AFTER_S) -> None:
         """Not yet subscribed: :meth:`open` builds and starts one."""
@@ -165,6 +179,11 @@ class ZenohSource:
         try:
             session.declare_subscriber(f"{prefix}/{STATUS_SUFFIX}", source._on_status)
             session.declare_subscriber(f"{prefix}/{INFO_SUFFIX}", source._on_info)
+            session.declare_subscriber(f"{prefix}/{HEALTH_SUFFIX}", source._on_health)
+            # history: the tokens already there when the monitor starts come at once.
+            session.liveliness().declare_subscriber(
+                f"{prefix}/{ALIVE_SUFFIX}", source._on_alive, history=True
+            )
         except zenoh.ZError as exc:
             source.close()
             raise ConfigError(f"prefix {prefix!r}: Zenoh refuses it: {exc}") from exc
@@ -175,14 +194,31 @@ class ZenohSource:
         with self._lock:
             states: list[VehicleState] = []
             for name, vehicle in sorted(self._vehicles.items()):
-                if vehicle.received is None:  # only esc/<n>/info so far
+                if vehicle.received is None and vehicle.alive is None:  # esc/<n>/info only
                     continue
-                age = now - vehicle.received
-                stale = age > self._stale_after_s
+                age = None if vehicle.received is None else now - vehicle.received
+                # Gone: its token went away and no esc/status came since (data that still
+                # flows outweighs a token lost on the way).
+                gone = vehicle.alive is False and (
+                    vehicle.received is None or vehicle.received <= vehicle.gone_at
+                )
+                stale = gone or (age is not None and age > self._stale_after_s)
                 # A stale vehicle's records keep ageing: each is as old as when it was
                 # published plus the time since (a fresh one's is at most a period behind).
-                escs = tuple(vehicle.row(_aged(esc, age) if stale else esc) for esc in vehicle.escs)
-                states.append(VehicleState(vehicle_name(name), escs, stale, age))
+                escs = tuple(
+                    vehicle.row(_aged(esc, age) if stale and age is not None else esc)
+                    for esc in vehicle.escs
+                )
+                states.append(
+                    VehicleState(
+                        vehicle_name(name),
+                        escs,
+                        stale,
+                        age,
+                        health=vehicle.health,
+                        alive=vehicle.alive,
+                    )
+                )
             bad = self.bad_messages
         if bad and states:
             states[-1] = replace(states[-1], note=f"{bad} malformed messages ignored")
@@ -230,6 +266,31 @@ class ZenohSource:
         with self._lock:
             vehicle = self._vehicles.setdefault(key.rsplit("/esc/", 1)[0], _Vehicle())
             vehicle.info[info.motor] = info
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        try:
+            health = HealthPayload.decode(sample.payload.to_bytes())
+        except PayloadError as exc:
+            self._count_bad(exc)
+            return
+        with self._lock:
+            vehicle = self._vehicles.setdefault(
+                _key_prefix(str(sample.key_expr), HEALTH_SUFFIX), _Vehicle()
+            )
+            vehicle.health = health
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        import zenoh
+
+        alive = sample.kind == zenoh.SampleKind.PUT  # DELETE: the token went away
+        now = time.monotonic()
+        with self._lock:
+            vehicle = self._vehicles.setdefault(
+                _key_prefix(str(sample.key_expr), ALIVE_SUFFIX), _Vehicle()
+            )
+            vehicle.alive = alive
+            if not alive:
+                vehicle.gone_at = now
 
     def _count_bad(self, exc: PayloadError) -> None:
         with self._lock:

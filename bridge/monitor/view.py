@@ -27,7 +27,7 @@ from bridge.escs.family import (
     FAILURE_OVER_TEMPERATURE,
     FAILURE_OVER_VOLTAGE,
 )
-from bridge.telemetry.payload import EscTelemetryPayload
+from bridge.telemetry.payload import EscTelemetryPayload, HealthPayload
 
 # MAVLink ESC_FAILURE_FLAGS bits -> the short names the table shows.
 FAILURE_NAMES: tuple[tuple[int, str], ...] = (
@@ -68,6 +68,11 @@ class VehicleState:
     """Time since the last message from this vehicle; None when read directly from the bus."""
     note: str = ""
     """A line shown under the table (reader counters, malformed messages)."""
+    health: HealthPayload | None = None
+    """The bridge's last ``bridge/health`` (Zenoh only; None until heard)."""
+    alive: bool | None = None
+    """The bridge's liveliness token ``<prefix>/alive``: True while it exists, False once it
+    went away (the bridge stopped or lost the network), None when never seen (the bus)."""
 
 
 def failure_names(flags: int | None) -> str:
