@@ -1,4 +1,5 @@
-"""``esc-bridge monitor``: the live ESC table, from bridges over Zenoh or from the CAN bus."""
+"""``esc-bridge monitor``: the live ESC table, from bridges over Zenoh or from the CAN bus, in
+the terminal or (``--web``) as a web page."""
 
 from __future__ import annotations
 
@@ -44,7 +45,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Show every ESC's telemetry, refreshed 10 times a second. By default it "
         "comes from the bridges on the network (Zenoh, key <prefix>/esc/status); with CAN "
         "flags (or --source can) it is read from the bus itself, which is never written to. "
-        "When stdout is not a terminal, a plain-text table is printed every second instead.",
+        "When stdout is not a terminal, a plain-text table is printed every second instead. "
+        "With --web the same is served as a live web page instead, for any number of browsers.",
     )
     monitor.add_argument(
         "--config",
@@ -66,10 +68,20 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="S",
         help="stop after S seconds (default: until Ctrl-C)",
     )
-    monitor.add_argument(
+    shown = monitor.add_mutually_exclusive_group()
+    shown.add_argument(
         "--plain",
         action="store_true",
         help="print a plain-text table every second even when stdout is a terminal",
+    )
+    shown.add_argument(
+        "--web",
+        type=_web_address,
+        default=None,
+        metavar="[HOST:]PORT",
+        help="serve a live, read-only web page of every vehicle on PORT instead of the table, "
+        "on 127.0.0.1 (this machine only) unless HOST is given (0.0.0.0 or [::]: every "
+        "network this machine is on)",
     )
     zenoh = monitor.add_argument_group("Zenoh source")
     zenoh.add_argument(
@@ -139,6 +151,15 @@ def _key_prefix(text: str) -> str:
     if problem is not None:
         raise argparse.ArgumentTypeError(f"expected {problem}, got {text!r}")
     return text
+
+
+def _web_address(text: str) -> tuple[str, int]:
+    from bridge.monitor.web import parse_address
+
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _pole_pairs(text: str) -> int | list[int]:
@@ -238,6 +259,8 @@ def _monitor(args: argparse.Namespace) -> int:
     pressed: list[int] = []
     previous = signal.signal(signal.SIGINT, lambda signum, _frame: pressed.append(signum))
     try:
+        if args.web is not None:
+            return _monitor_web(source, args.web, args.duration, lambda: bool(pressed))
         if args.plain or not sys.stdout.isatty():
             _monitor_plain(lambda: _monitor_text(source), args.duration, lambda: bool(pressed))
         else:
@@ -245,6 +268,37 @@ def _monitor(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGINT, previous)
         source.close()
+    return EXIT_OK
+
+
+def _monitor_web(
+    source: Any, address: tuple[str, int], duration: float | None, stopped: Callable[[], bool]
+) -> int:
+    from bridge import monitor
+    from bridge.errors import LinkError
+    from bridge.monitor.web import WebMonitor, is_loopback
+
+    host, port = address
+    web = WebMonitor(source, host, port)
+    try:
+        web.start()
+    except LinkError as exc:
+        print(f"esc-bridge: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        print(f"esc-bridge monitor: {source.where} on {web.url} (read-only; Ctrl-C stops)")
+        if not is_loopback(host):
+            print(
+                f"esc-bridge monitor: served on {host}: anyone who can reach this machine's "
+                f"port {web.port} can watch every vehicle's telemetry (there is no password); "
+                "nothing on the page can control a vehicle",
+                file=sys.stderr,
+            )
+        sys.stdout.flush()
+        for _ in monitor.schedule(monitor.PLAIN_PERIOD_S, duration, stopped):
+            pass
+    finally:
+        web.close()
     return EXIT_OK
 
 

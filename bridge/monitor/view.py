@@ -117,7 +117,7 @@ def render_table(vehicles: Sequence[VehicleState], *, plain: bool = False) -> Ta
         )
     for vehicle in vehicles:
         for esc in vehicle.escs:
-            cells = _cells(esc, vehicle.stale)
+            cells = row_cells(esc, vehicle.stale)
             style = "dim" if vehicle.stale else ""
             row: list[RenderableType] = []
             if several:
@@ -226,7 +226,9 @@ COLUMNS: tuple[tuple[str, Any], ...] = tuple((header, justify) for header, justi
 """The table's columns after the optional vehicle column: (header, justification)."""
 
 
-def _cells(esc: EscRow, stale: bool) -> list[tuple[str, str]]:
+def row_cells(esc: EscRow, stale: bool) -> list[tuple[str, str]]:
+    """One ESC's row as (column header, text), in :data:`COLUMNS` order: the terminal's table
+    and the web page show the same texts."""
     return [(header, cell(esc, stale)) for header, _, cell in _CELLS]
 
 

@@ -157,7 +157,7 @@ def test_a_bridge_is_known_by_its_token_and_gone_with_it() -> None:
                 # The bridge stops: its data and its token go. Stale at once, not when its
                 # data is a second old.
                 statuses.on.clear()
-                token.undeclare()  # type: ignore[no-untyped-call]
+                token.undeclare()
                 (alpha,) = wait_for(source, lambda v: v[0].stale)
                 assert alpha.alive is False
                 assert alpha.age_s is not None and alpha.age_s < STALE_AFTER_S

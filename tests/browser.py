@@ -1,0 +1,177 @@
+"""Headless Chromium driven over WebDriver (W3C, plain HTTP to Debian's chromedriver): the tests
+of the web monitor and ``bench/web_monitor.py`` watch the page through it.
+
+Five requests are all the page's tests need (new session, go to a URL, run a script, take a
+screenshot, end the session), so this speaks the protocol itself rather than pulling in a
+client library. Each browser gets a fresh profile in a temporary directory and the flags that
+keep Chromium off the network (no background networking, component updates or sync): the page
+is served on loopback and needs nothing else.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+INSTALL = "sudo apt-get install chromium chromium-driver"
+"""What a machine without the browser needs (Debian's packages; CI installs them)."""
+CHROMIUM = ("chromium", "chromium-browser")
+CHROMEDRIVER = "chromedriver"
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+)
+START_TIMEOUT_S = 30.0  # a browser's start on a loaded machine
+
+
+def find_browser() -> tuple[str, str] | None:
+    """(chromium, chromedriver) on PATH, or None when either is missing."""
+    browser = next((path for name in CHROMIUM if (path := shutil.which(name))), None)
+    driver = shutil.which(CHROMEDRIVER)
+    return None if browser is None or driver is None else (browser, driver)
+
+
+class WebDriverError(RuntimeError):
+    """chromedriver answered with an error (its message kept)."""
+
+
+class Browser:
+    """One chromedriver and the headless Chromium it runs; a context manager."""
+
+    def __init__(self, width: int = 1200, height: int = 900) -> None:
+        found = find_browser()
+        if found is None:
+            raise WebDriverError(f"no chromium and chromedriver: {INSTALL}")
+        browser, driver = found
+        self._profile = tempfile.TemporaryDirectory(prefix="esc-bridge-chromium-")
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        self._base = f"http://127.0.0.1:{port}"
+        self.driver = subprocess.Popen(
+            [driver, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        self.session = ""
+        try:
+            self._wait_for_driver()
+            options = {
+                "binary": browser,
+                "args": [
+                    *CHROMIUM_FLAGS,
+                    f"--user-data-dir={self._profile.name}",
+                    f"--window-size={width},{height}",
+                ],
+            }
+            capabilities = {"browserName": "chrome", "goog:chromeOptions": options}
+            answer = self._request(
+                "POST", "/session", {"capabilities": {"alwaysMatch": capabilities}}
+            )
+            self.session = answer["sessionId"]
+        except BaseException:
+            self.close()
+            raise
+
+    def _wait_for_driver(self) -> None:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            try:
+                self._request("GET", "/status")
+                return
+            except (OSError, WebDriverError):
+                if time.monotonic() > deadline or self.driver.poll() is not None:
+                    raise
+                time.sleep(0.05)
+
+    def _request(self, method: str, path: str, body: Any = None) -> Any:
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(
+            self._base + path,
+            data=data,
+            method=method,
+            headers={"Content-Type": "application/json"},
+        )
+        try:
+            with urllib.request.urlopen(request, timeout=START_TIMEOUT_S * 2) as answer:
+                return json.loads(answer.read())["value"]
+        except urllib.error.HTTPError as exc:
+            raise WebDriverError(
+                f"{method} {path}: {exc.read().decode(errors='replace')}"
+            ) from None
+
+    def _session(self, method: str, path: str, body: Any = None) -> Any:
+        return self._request(method, f"/session/{self.session}{path}", body)
+
+    def get(self, url: str) -> None:
+        """Load ``url`` (returns once the page has loaded)."""
+        self._session("POST", "/url", {"url": url})
+
+    def run(self, script: str, *args: Any) -> Any:
+        """Run ``script`` (a function body; ``arguments`` holds ``args``) in the page; what it
+        returns."""
+        return self._session("POST", "/execute/sync", {"script": script, "args": list(args)})
+
+    def wait_for(self, script: str, timeout_s: float, *args: Any) -> Any:
+        """Run ``script`` until it returns something truthy; that value.
+
+        Raises:
+            AssertionError: it did not within ``timeout_s`` (its last value named).
+        """
+        deadline = time.monotonic() + timeout_s
+        value = None
+        while time.monotonic() < deadline:
+            value = self.run(script, *args)
+            if value:
+                return value
+            time.sleep(0.1)
+        raise AssertionError(f"not true within {timeout_s} s: {script!r} gave {value!r}")
+
+    def screenshot(self, path: Path) -> None:
+        """The window as a PNG."""
+        path.write_bytes(base64.b64decode(self._session("GET", "/screenshot")))
+
+    def set_window(self, width: int, height: int) -> None:
+        self._session("POST", "/window/rect", {"width": width, "height": height})
+
+    def close(self) -> None:
+        """End the session, the browser and the driver; a second call does nothing."""
+        if self.session:
+            session, self.session = self.session, ""
+            with contextlib.suppress(OSError, WebDriverError):
+                self._request("DELETE", f"/session/{session}")
+        if self.driver.poll() is None:
+            self.driver.terminate()
+            try:
+                self.driver.wait(10)
+            except subprocess.TimeoutExpired:
+                self.driver.kill()
+                self.driver.wait()
+        self._profile.cleanup()
+
+    def __enter__(self) -> Browser:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
