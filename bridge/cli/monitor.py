@@ -36,6 +36,9 @@ MONITOR_CAN_FLAGS: dict[str, tuple[str, str]] = {
     "--telemetry-timeout-ms": ("telemetry", "timeout_ms"),
 }
 MONITOR_ZENOH_FLAGS = ("--prefix", "--connect", "--listen", "--mode", "--no-multicast-scouting")
+# Flags that say how to reach the bridges: without them (and without --config), the monitor
+# also connects to what runs on this machine unseen by scouting (bridge.monitor.local).
+CONNECTION_FLAGS = ("--connect", "--listen", "--mode", "--no-multicast-scouting")
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -242,6 +245,7 @@ def _monitor(args: argparse.Namespace) -> int:
         if source_name == "can":
             source = monitor.CanSource.open(config)
         else:
+            config = _with_local_bridges(args, config)
             try:
                 source = monitor.ZenohSource.open(config.zenoh, prefix)
             except ConfigError as exc:
@@ -269,6 +273,25 @@ def _monitor(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, previous)
         source.close()
     return EXIT_OK
+
+
+def _with_local_bridges(args: argparse.Namespace, config: BridgeConfig) -> BridgeConfig:
+    """``config`` also connecting to the demos running on this machine, when nothing says how
+    to reach the bridges (a demo's bridge cannot be scouted for)."""
+    from bridge.monitor.local import announced
+
+    if args.config is not None or _given(args, CONNECTION_FLAGS):
+        return config
+    local = [e for e in announced() if e not in config.zenoh.connect]
+    if not local:
+        return config
+    print(
+        f"esc-bridge monitor: also connecting to {', '.join(local)} (esc-bridge demo on this "
+        "machine)",
+        file=sys.stderr,
+    )
+    zenoh = dataclasses.replace(config.zenoh, connect=config.zenoh.connect + tuple(local))
+    return dataclasses.replace(config, zenoh=zenoh)
 
 
 def _monitor_web(

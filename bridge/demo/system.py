@@ -63,6 +63,7 @@ from bridge.monitor import (
     schedule,
     waiting_text,
 )
+from bridge.monitor.local import announcing
 from bridge.sim.autopilot import FLIGHT_S, WAITING, Airframe, SimAutopilot, motor_count
 
 if TYPE_CHECKING:
@@ -279,15 +280,20 @@ class Demo:
     @property
     def watch_hint(self) -> str:
         return (
-            "watch from another terminal: esc-bridge monitor --connect "
-            f"{self.ports.zenoh_endpoint} --no-multicast-scouting"
+            "watch from another terminal: esc-bridge monitor, or esc-bridge monitor --web 8080 "
+            f"and http://127.0.0.1:8080 (Zenoh: {self.ports.zenoh_endpoint})"
         )
 
     def run(self) -> int:
         """Start everything, show the table until the end, stop everything; the exit status."""
         reason = "flight complete"
         failure: str | None = None
-        with tempfile.TemporaryDirectory(prefix="esc-bridge-demo-") as tmp, _stop_signals():
+        with (
+            tempfile.TemporaryDirectory(prefix="esc-bridge-demo-") as tmp,
+            _stop_signals(),
+            # So that a plain `esc-bridge monitor` (or --web) in another terminal finds it.
+            announcing(self.ports.zenoh_endpoint),
+        ):
             try:
                 self._start(Path(tmp))
                 reason = self._show()

@@ -25,6 +25,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -310,3 +311,39 @@ def test_two_vehicles_failures_phone_width_and_a_bridge_going_away(
         status, err = stop(monitor)
         published.close()
     assert status == 0, err
+
+
+def test_the_demo_and_a_plain_web_monitor_beside_it(
+    chromium: tuple[str, str], tmp_path: Path
+) -> None:
+    # The README's line: `esc-bridge demo` in one terminal, `esc-bridge monitor --web PORT` in
+    # another, nothing else. Their own runtime directory: no other test's demo is found.
+    env = {"XDG_RUNTIME_DIR": str(tmp_path)}
+    demo = subprocess.Popen(
+        [ESC_BRIDGE, "demo", "--plain", "--duration", "60"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, **env},
+    )
+    monitor: subprocess.Popen[str] | None = None
+    try:
+        deadline = time.monotonic() + PAGE_TIMEOUT_S
+        while not list((tmp_path / "esc-bridge" / "listening").glob("*")):
+            assert time.monotonic() < deadline, "the demo announced no endpoint"
+            time.sleep(0.1)
+        monitor, url = start_web_monitor(env=env)
+        with Browser() as browser:
+            browser.get(url)
+            seen = wait_for(browser, lambda s: any(r for r in rpm(s["demo"])), PAGE_TIMEOUT_S * 1.5)
+            assert seen["demo"]["summary"] == "4/4 ESCs online"
+    finally:
+        if monitor is not None:
+            status, err = stop(monitor)
+            assert status == 0, err
+            assert "also connecting to tcp/127.0.0.1:" in err
+        demo.send_signal(signal.SIGINT)
+        try:
+            demo.wait(30)
+        except subprocess.TimeoutExpired:
+            demo.kill()
+            demo.wait()
