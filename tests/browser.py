@@ -13,7 +13,9 @@ from __future__ import annotations
 import base64
 import contextlib
 import json
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import tempfile
@@ -38,8 +40,11 @@ CHROMIUM_FLAGS = (
     "--disable-component-update",
     "--disable-sync",
     "--disable-dev-shm-usage",
+    "--disable-breakpad",  # no crash handler: it would outlive the browser in a session of its own
+    "--disable-crash-reporter",
 )
 START_TIMEOUT_S = 30.0  # a browser's start on a loaded machine
+REQUEST_TIMEOUT_S = 120.0  # one command (a page load takes 50 s at load 30 on two cores)
 
 
 def find_browser() -> tuple[str, str] | None:
@@ -61,15 +66,24 @@ class Browser:
         if found is None:
             raise WebDriverError(f"no chromium and chromedriver: {INSTALL}")
         browser, driver = found
-        self._profile = tempfile.TemporaryDirectory(prefix="esc-bridge-chromium-")
+        # A browser still writing its profile as it is stopped must not fail the cleanup.
+        self._profile = tempfile.TemporaryDirectory(
+            prefix="esc-bridge-chromium-", ignore_cleanup_errors=True
+        )
         with socket.socket() as sock:
             sock.bind(("127.0.0.1", 0))
             port = sock.getsockname()[1]
         self._base = f"http://127.0.0.1:{port}"
+        # A process group of its own, which Chromium's processes join: close() ends them all,
+        # however the session went.
         self.driver = subprocess.Popen(
-            [driver, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            [driver, f"--port={port}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
         )
         self.session = ""
+        self._closed = False
         try:
             self._wait_for_driver()
             options = {
@@ -80,7 +94,13 @@ class Browser:
                     f"--window-size={width},{height}",
                 ],
             }
-            capabilities = {"browserName": "chrome", "goog:chromeOptions": options}
+            # "eager": get() returns once the document is parsed; the tests wait for what they
+            # look for themselves.
+            capabilities = {
+                "browserName": "chrome",
+                "pageLoadStrategy": "eager",
+                "goog:chromeOptions": options,
+            }
             answer = self._request(
                 "POST", "/session", {"capabilities": {"alwaysMatch": capabilities}}
             )
@@ -109,7 +129,7 @@ class Browser:
             headers={"Content-Type": "application/json"},
         )
         try:
-            with urllib.request.urlopen(request, timeout=START_TIMEOUT_S * 2) as answer:
+            with urllib.request.urlopen(request, timeout=REQUEST_TIMEOUT_S) as answer:
                 return json.loads(answer.read())["value"]
         except urllib.error.HTTPError as exc:
             raise WebDriverError(
@@ -120,7 +140,7 @@ class Browser:
         return self._request(method, f"/session/{self.session}{path}", body)
 
     def get(self, url: str) -> None:
-        """Load ``url`` (returns once the page has loaded)."""
+        """Load ``url`` (returns once its document is parsed)."""
         self._session("POST", "/url", {"url": url})
 
     def run(self, script: str, *args: Any) -> Any:
@@ -152,17 +172,19 @@ class Browser:
 
     def close(self) -> None:
         """End the session, the browser and the driver; a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         if self.session:
-            session, self.session = self.session, ""
             with contextlib.suppress(OSError, WebDriverError):
-                self._request("DELETE", f"/session/{session}")
-        if self.driver.poll() is None:
-            self.driver.terminate()
-            try:
-                self.driver.wait(10)
-            except subprocess.TimeoutExpired:
-                self.driver.kill()
-                self.driver.wait()
+                self._request("DELETE", f"/session/{self.session}")
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.driver.pid, signal.SIGTERM)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.driver.wait(10)
+        with contextlib.suppress(ProcessLookupError):  # whatever of Chromium is still there
+            os.killpg(self.driver.pid, signal.SIGKILL)
+        self.driver.wait()
         self._profile.cleanup()
 
     def __enter__(self) -> Browser:

@@ -9,7 +9,7 @@ browser misses snapshots (each one is whole, the next replaces it) and a stuck o
 after :data:`WRITE_TIMEOUT_S`; neither ever waits the publisher, let alone the Zenoh side, which
 only ever hands its samples to the source under the source's own short lock.
 
-Read-only by construction: GET and HEAD of four paths, nothing that takes a parameter, and no
+Read-only by construction: GET and HEAD of five paths, nothing that takes a parameter, and no
 other method (the standard library answers 501). The page's script, style and markup are
 package data beside this module (hand-written, under the project's licence); the
 Content-Security-Policy header forbids the page anything from elsewhere.
