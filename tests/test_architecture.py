@@ -5,9 +5,9 @@ which imports it in a fresh interpreter and looks at what came along:
 
 - no import cycle between the bridge's modules, lazy imports included (``TYPE_CHECKING`` blocks
   are for the type checker only);
-- the pure layers (ESC codecs, mixing, the ESC state and its Zenoh schema, the safety decision)
-  import no I/O layer: not the output loop, the daemon, the CLI or the configuration, at any
-  depth of a function;
+- the pure layers (ESC codecs, mixing, the ESC state and its Zenoh schema, the safety decision,
+  the web monitor's page model) import no I/O layer: not the output loop, the daemon, the CLI
+  or the configuration, at any depth of a function;
 - the output loop's process imports nothing it does not run: no CLI, daemon (its supervisor,
   health reports, motor-test control), telemetry side (reader, state, publishers), monitor,
   simulator, demo, Zenoh or rich;
@@ -113,7 +113,7 @@ def test_no_module_imports_itself_back() -> None:
 
 
 PURE = re.compile(
-    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload)|output\.safety"
+    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload)|output\.safety|monitor\.web\.model"
     r"|escs\.(family|registry|uavcan_v0)"
     r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
 )
