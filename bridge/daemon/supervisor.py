@@ -148,6 +148,7 @@ class Supervisor:
         config = self._config
         mavlink = config.mavlink
         autopilot = (mavlink.autopilot_system_id, mavlink.autopilot_component_id)
+        pairs = config.telemetry.pole_pairs
         return Recording.open(
             directory,
             config.can,
@@ -162,6 +163,7 @@ class Supervisor:
                 config.escs.ids,
                 mixer=self._plan.mixer.name,
                 rate_hz=str(config.rate_hz),
+                pole_pairs=",".join(map(str, pairs)) if isinstance(pairs, tuple) else str(pairs),
             ),
         )
 
