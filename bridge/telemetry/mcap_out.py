@@ -48,6 +48,9 @@ CHUNK_BYTES: Final = 4 * 1024 * 1024
 MAX_PENDING: Final = 500_000
 """Items waiting for the writer beyond which new ones are dropped (~100 MB)."""
 LIBRARY: Final = "esc-bridge"
+_JSON: Final = json.JSONEncoder(
+    separators=(",", ":"), allow_nan=False
+)  # json.dumps makes one a call
 
 # What a feeder appends: (kind, log time ns, data).
 _ESC: Final = 0
@@ -181,7 +184,7 @@ class McapRecording:
                 topic = channels.LOG_TOPIC
                 message = channels.log_message(time_ns, level, text, name, file, line)
             try:
-                encoded = json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+                encoded = _JSON.encode(message).encode()
                 self._writer.add_message(self._channel(topic), time_ns, encoded, publish_ns)
             except ValueError:  # NaN or infinity: no JSON number
                 errors += 1
