@@ -5,6 +5,8 @@ colours by."""
 from __future__ import annotations
 
 import logging
+import re
+from pathlib import Path
 
 import pytest
 
@@ -97,3 +99,25 @@ def test_metadata_round_trip() -> None:
     assert channels.esc_ids_of(meta) == (5, 6, 7)
     assert channels.esc_ids_of({}) is None
     assert channels.esc_ids_of({"esc_ids": "1,x"}) is None
+
+
+TELEMETRY_PAGE = Path(__file__).resolve().parents[2] / "docs" / "telemetry.md"
+
+
+def test_the_channels_are_the_documented_table() -> None:
+    text = TELEMETRY_PAGE.read_text(encoding="utf-8")
+    section = text[text.index("### The MCAP: Foxglove and PlotJuggler") :]
+    rows = re.findall(r"^\| `(/[^`]+)` \| `([\w.]+)` \| (.*) \|$", section, re.MULTILINE)
+    documented = {topic: schema for topic, schema, _ in rows}
+    assert documented == {
+        "/esc/<n>/telemetry": "esc_bridge.EscTelemetry",
+        **channels.TOPIC_SCHEMAS,
+    }
+    assert set(documented.values()) == set(channels.SCHEMAS)
+    assert channels.schema_of(channels.esc_topic(3)) == documented["/esc/<n>/telemetry"]
+    # Each of the bridge's own records names every field it has.
+    described = {schema: what for _, schema, what in rows}
+    for schema in ("MotorOutputs", "AutopilotHeartbeat", "BridgeState", "CommandsSent"):
+        fields = set(channels.SCHEMAS[f"esc_bridge.{schema}"]["properties"])
+        named = set(re.findall(r"`([a-z_]+)`", described[f"esc_bridge.{schema}"]))
+        assert fields <= named, (schema, fields - named)
