@@ -181,6 +181,20 @@ class Supervisor:
             log.info("%s: stopping", self._stop_reason)
 
     def run(self) -> int:
+        """Run until stopped; the exit code. The recording, if any, gets the log from here on
+        and is closed at the end."""
+        handler = LogHandler(self.recording.mcap) if self.recording is not None else None
+        if handler is not None:
+            logging.getLogger().addHandler(handler)
+        try:
+            return self._run()
+        finally:
+            if handler is not None:
+                logging.getLogger().removeHandler(handler)
+            if self.recording is not None:
+                self.recording.close()
+
+    def _run(self) -> int:
         config = self._config
         log.info(
             "esc-bridge: %s x%d (%s), mixer %s, %d Hz, loop in a %s; %s",
@@ -196,9 +210,6 @@ class Supervisor:
             self._log_stop_reason()
             log.info("stopped before starting: nothing was sent")
             return 0
-        log_handler = LogHandler(self.recording.mcap) if self.recording is not None else None
-        if log_handler is not None:
-            logging.getLogger().addHandler(log_handler)
         self.link.start()
         try:
             self.runner.start()
@@ -223,10 +234,6 @@ class Supervisor:
             self.runner.join(1.0)
             self.fanout.close()
             self.link.close()
-            if log_handler is not None:
-                logging.getLogger().removeHandler(log_handler)
-            if self.recording is not None:
-                self.recording.close()
 
     def _loop_died(self) -> int:
         """The loop ended without being asked: safe values from here, then exit 1 (so that
