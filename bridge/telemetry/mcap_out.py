@@ -145,7 +145,11 @@ class McapRecording:
     def _run(self) -> None:
         chunk_at = time.monotonic() + CHUNK_INTERVAL_S
         while not self._stop.wait(WRITE_INTERVAL_S):
-            self._write()
+            try:
+                self._write()
+            except Exception:  # a fault in one batch must not end the recording: it is lost
+                self.errors += 1
+                log.exception("recording: an MCAP batch could not be written; it is dropped")
             if time.monotonic() >= chunk_at:
                 chunk_at = time.monotonic() + CHUNK_INTERVAL_S
                 self._flush()
