@@ -48,8 +48,10 @@ own CPU and by the CPU under them (a deterministic profiler slows what it watche
 tell where the time goes, the CPU column of the runs before tells how much).
 
 ``--bridge-source DIR`` runs the bridge from another checkout (``git worktree add /tmp/before
-<commit>``) with this bench, so that a change is compared with the code before it in the
-same hour.
+<commit>``, or ``git archive <commit> | tar -x -C /tmp/before``) with this bench; ``--before DIR``
+with the contenders ``fixed-before`` and ``immediate-before`` runs that checkout beside this one,
+taking turns in the same run, so that a change is compared with the code before it in the same
+minutes.
 """
 
 from __future__ import annotations
@@ -405,7 +407,9 @@ def run_once(
                 raise RuntimeError("the plain script did not start")
             main_pid = plain.pid or 0
         else:
-            prefix, env = bridge_prefix(args.bridge_source)
+            latency, _, before = contender.partition("-")
+            source = args.before if before else args.bridge_source
+            prefix, env = bridge_prefix(source)
             if args.profiling:
                 (tmp / "profiles").mkdir(exist_ok=True)
                 path = [str(PROFILE_HOOK), env.get("PYTHONPATH", "")]
@@ -413,14 +417,14 @@ def run_once(
                 env["ESC_BRIDGE_PROFILE_DIR"] = str(tmp / "profiles")
             command = bridge_command(mavlink_port, can_port, "info")
             command[:1] = prefix
-            command += ["--config", str(bridge_config(tmp, case, contender))]
+            command += ["--config", str(bridge_config(tmp, case, latency))]
             with log_path.open("wb") as log_file:
                 daemon = subprocess.Popen(
                     command,
                     stdout=log_file,
                     stderr=subprocess.STDOUT,
                     env=env,
-                    cwd=args.bridge_source,
+                    cwd=source,
                 )
             procs.daemon = daemon
             main_pid = daemon.pid
@@ -479,16 +483,21 @@ def run_once(
     return run
 
 
+START_ATTEMPTS = 4
+
+
 def run_with_retry(
     case: Case, contender: str, can_port: int, args: argparse.Namespace, ctx: Any, tmp: Path
-) -> Run:
-    """:func:`run_once`, tried again once when the contender did not start (a loop process
-    slower to start than the bridge waits for, beside a busy machine's other work)."""
-    try:
-        return run_once(case, contender, can_port, args, ctx, tmp)
-    except RuntimeError as exc:
-        print(f"!! {contender} did not start; once more: {str(exc).splitlines()[-1]}", flush=True)
-        return run_once(case, contender, can_port, args, ctx, tmp)
+) -> Run | None:
+    """:func:`run_once`, tried again when the contender did not start (a loop process slower
+    to start than the bridge waits for, beside a busy machine's other work); None when it
+    never did (said, and the bench goes on)."""
+    for attempt in range(1, START_ATTEMPTS + 1):
+        try:
+            return run_once(case, contender, can_port, args, ctx, tmp)
+        except RuntimeError as exc:
+            print(f"!! {contender}, start {attempt}: {str(exc).splitlines()[-1]}", flush=True)
+    return None
 
 
 def analyse(
@@ -511,7 +520,7 @@ def analyse(
             rates.append((len(stamps) - 1) / (stamps[-1] - stamps[0]))
             errors += [abs(b - a - case.period_s) * 1e6 for a, b in itertools.pairwise(stamps)]
     run.rate_hz = statistics.mean(rates) if rates else float("nan")
-    if run.contender != "immediate":
+    if not run.contender.startswith("immediate"):
         run.err_p50_us, run.err_p99_us = percentile(errors, 0.5), percentile(errors, 0.99)
     stamps = [c[0] for c in commands]
     latencies = []
@@ -608,7 +617,7 @@ def print_ratios(rows: dict[str, Row]) -> None:
         return
     base = plain.median("cpu_total_pct")
     parts = []
-    for contender in ("fixed", "immediate"):
+    for contender in ("fixed", "immediate", "fixed-before", "immediate-before"):
         if (row := rows.get(contender)) is not None:
             parts.append(
                 f"{contender} {row.median('cpu_total_pct') / base:.2f}x "
@@ -648,7 +657,7 @@ def main() -> int:
     parser.add_argument(
         "--contenders",
         nargs="+",
-        choices=["plain", "fixed", "immediate"],
+        choices=["plain", "fixed", "immediate", "fixed-before", "immediate-before"],
         default=["plain", "fixed", "immediate"],
     )
     parser.add_argument(
@@ -656,9 +665,17 @@ def main() -> int:
     )
     parser.add_argument("--profile-top", type=int, default=15, help="functions listed")
     parser.add_argument("--bridge-source", type=Path, metavar="DIR", help="run that checkout")
+    parser.add_argument(
+        "--before",
+        type=Path,
+        metavar="DIR",
+        help="the checkout the fixed-before and immediate-before contenders run from",
+    )
     parser.add_argument("--json", metavar="FILE", help="write every run as JSON")
     args = parser.parse_args()
     args.profiling = False
+    if any(c.endswith("-before") for c in args.contenders) and args.before is None:
+        parser.error("the -before contenders need --before DIR")
     if args.profile and importlib.util.find_spec("yappi") is None:
         parser.error("--profile needs yappi: .venv/bin/pip install -e '.[bench]'")
     signal.signal(signal.SIGTERM, raise_interrupt)
@@ -699,6 +716,8 @@ def main() -> int:
                     turn = args.contenders[index % len(args.contenders) :]
                     for contender in turn + args.contenders[: len(args.contenders) - len(turn)]:
                         run = run_with_retry(case, contender, can_port, args, ctx, Path(tmp_name))
+                        if run is None:
+                            continue
                         runs[contender].append(run)
                         for problem in run.problems:
                             print(f"!! {contender}: {problem}", flush=True)
@@ -715,7 +734,7 @@ def main() -> int:
                         )
                     finally:
                         args.profiling = False
-                    for process, lines in profiled.profile.items():
+                    for process, lines in profiled.profile.items() if profiled else ():
                         print(f"  profile, bridge fixed, {process} process: " + lines[0])
                         print("\n".join(lines[1:]))
             document += [

@@ -47,7 +47,8 @@ from cpu import CASES, Case, bridge_prefix, loop_processes, pilot_worker, simula
 
 from bridge.mavlink import load_dialect
 
-START_TIMEOUT_S = 60.0
+START_TIMEOUT_S = 120.0  # a loaded machine takes that long to spawn and import the loop
+START_ATTEMPTS = 5  # the bridge gives up on a loop that does not start in 15 s: start again
 
 
 def rss_kib(pid: int) -> int | None:
@@ -146,25 +147,35 @@ def main() -> int:
             )
             prefix, env = bridge_prefix(args.bridge_source)
             command = bridge_command(mavlink_port, can_port, "info")
-            command[:1] = prefix
+            # At nice -10 where allowed: on a machine loaded by others the loop process must
+            # still start within the 15 s the bridge gives it (memory does not care).
+            command[:1] = (["nice", "-n", "-10"] if os.geteuid() == 0 else []) + prefix
             command += ["--config", str(config)]
             log_path = tmp / "bridge.log"
-            with log_path.open("wb") as log_file:
-                daemon = subprocess.Popen(
-                    command,
-                    stdout=log_file,
-                    stderr=subprocess.STDOUT,
-                    env=env,
-                    cwd=args.bridge_source,
-                )
-            procs.daemon = daemon
-            wait_for(
-                lambda: holds_bus(daemon.pid, can_port) and loop_processes(daemon.pid),
-                START_TIMEOUT_S,
-                "before the bridge opened its bus",
-                daemon,
-                log_path,
-            )
+            for attempt in range(1, START_ATTEMPTS + 1):
+                with log_path.open("wb") as log_file:
+                    daemon = subprocess.Popen(
+                        command,
+                        stdout=log_file,
+                        stderr=subprocess.STDOUT,
+                        env=env,
+                        cwd=args.bridge_source,
+                    )
+                procs.daemon = daemon
+                try:
+                    wait_for(
+                        lambda d=daemon: holds_bus(d.pid, can_port) and loop_processes(d.pid),
+                        START_TIMEOUT_S,
+                        "before the bridge opened its bus",
+                        daemon,
+                        log_path,
+                    )
+                    break
+                except RuntimeError as exc:
+                    if attempt == START_ATTEMPTS:
+                        raise
+                    print(f"!! start {attempt}: {str(exc).splitlines()[-1]}", flush=True)
+                    procs.stop_all()
             loop = loop_processes(daemon.pid)[0]
             stop_pilot, pilot_ready = ctx.Event(), ctx.Event()
             pilot_q = ctx.Queue()
