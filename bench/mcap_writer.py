@@ -3,14 +3,15 @@
 Run: ``python bench/mcap_writer.py [--runs 5] [--flight-s 10]``
 
 Each run replays a made-up flight of ``--flight-s`` seconds, as fast as the machine goes, through
-the code the bridge runs for it: the ESC state (``EscTable.ingest``, and the reader's
-``take_commands``), and with the MCAP on, what the CAN reader adds for it (an ESC's snapshot after
-each telemetry frame, every ESC's last command after each command frame), the MAVLink tap (the
-autopilot's SERVO_OUTPUT_RAW and HEARTBEAT, the bridge's own HEARTBEAT, already packed), log
-lines, and :class:`~bridge.telemetry.mcap_out.McapRecording` writing it all to a file until
-:meth:`close` returns. The MCAP's cost is the process's CPU time (every thread: the writer's
-too) with it, less the same replay without it, scaled to a minute of flight; the bytes are the
-file's. Medians over ``--runs`` runs, and the 10th-90th percentile of the CPU.
+the code the bridge runs for it: the ESC state (``EscTable.ingest``, and ``take_commands`` for the
+commands the loop says it sent, here as if every command changed), and with the MCAP on, what
+the CAN reader adds for it (an ESC's snapshot after each telemetry frame), every ESC's last
+command after each command, the MAVLink tap (the autopilot's SERVO_OUTPUT_RAW and HEARTBEAT, the
+bridge's own HEARTBEAT, already packed), log lines, and
+:class:`~bridge.telemetry.mcap_out.McapRecording` writing it all to a file until :meth:`close`
+returns. The MCAP's cost is the process's CPU time (every thread: the writer's too) with it,
+less the same replay without it, scaled to a minute of flight; the bytes are the file's. Medians
+over ``--runs`` runs, and the 10th-90th percentile of the CPU.
 
 The rows: ESCs x telemetry frames per second per ESC, commands at 400 Hz in frames of four ESCs,
 the autopilot's outputs at 200 Hz. The demo's ESCs send about 50 (CKESC) and 200 (FT) telemetry
@@ -36,12 +37,12 @@ from typing import Any
 
 from _stats import percentile
 
+from bridge.daemon.commands_sent import take_commands
 from bridge.escs.family import CommandSeen, EscTelemetry
 from bridge.mavlink import load_dialect
 from bridge.mavlink.traffic import TrafficReader
 from bridge.telemetry.mcap_channels import metadata
 from bridge.telemetry.mcap_out import LogHandler, McapRecording
-from bridge.telemetry.reader import take_commands
 from bridge.telemetry.state import EscTable
 
 COMMAND_RATE_HZ = 400

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
 from bridge.daemon.absence import AbsenceWatch, EscsHeard
+from bridge.daemon.commands_sent import CommandsSent
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.daemon.motor_test_control import MotorTestControl
@@ -39,11 +40,11 @@ from bridge.daemon.severity import SEVERITY_CRITICAL, SEVERITY_WARNING
 from bridge.errors import LinkError
 from bridge.escs import registry
 from bridge.mavlink import load_dialect
-from bridge.mavlink.link import MavlinkLink
+from bridge.mavlink.link import MavlinkLink, relayed_msg_ids
 from bridge.mavlink.relay import MainConnection, relay_pair
 from bridge.mavlink.traffic import TrafficReader
 from bridge.output.autopilot_input import InputSetup
-from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock, SentCommands
 from bridge.output.motor_test import limits_for
 from bridge.output.output_loop import LoopSetup
 from bridge.output.safety import SENDING_COMMANDS, LoopState
@@ -72,6 +73,7 @@ class Supervisor:
         self.motor_tests = MotorTestBlock(n)
         self.input_snapshot = InputSnapshot(n)
         self.stats = LoopStats()
+        self.sent = SentCommands(n)
         valid_range = plan.valid_range
         # An interface only one handle can open is read through the thread-mode loop's handle.
         shares_loop_bus = config.can.interface not in SHAREABLE_INTERFACES | {"virtual"} and (
@@ -80,13 +82,20 @@ class Supervisor:
         setup = LoopSetup(
             config=config,
             input=InputSetup(
-                plan.mixer, valid_range, plan.input_range, relay_outputs=record_dir is not None
+                plan.mixer,
+                valid_range,
+                plan.input_range,
+                relay_outputs=record_dir is not None,
+                # Recorded, the link gets every frame; else only what it acts on.
+                relay_msg_ids=None if record_dir is not None else relayed_msg_ids(),
             ),
             log_level=logging.getLogger().getEffectiveLevel(),
             bus_receive="all" if shares_loop_bus else "none",
         )
         loop_end, main_end = relay_pair()
-        self.runner = LoopRunner(setup, self.motor_tests, self.input_snapshot, self.stats, loop_end)
+        self.runner = LoopRunner(
+            setup, self.motor_tests, self.input_snapshot, self.stats, loop_end, self.sent
+        )
         self.recording = self._open_recording(Path(record_dir)) if record_dir else None
         mcap = self.recording.mcap if self.recording is not None else None
         tlog = self.recording.tlog if self.recording is not None else None
@@ -135,6 +144,8 @@ class Supervisor:
             states=mcap,
         )
         self.health_report.fanout = self.fanout
+        # Each ESC's command comes from the loop, not read back off the bus.
+        self.commands_sent = CommandsSent(config, self.sent, self.fanout.table, mcap)
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
@@ -289,6 +300,7 @@ class Supervisor:
                 ),
             )
         self.health_report.sample()
+        self.commands_sent.update()
         self._report_states()
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]

@@ -80,7 +80,7 @@ from bridge.mavlink.signing import SIGNATURE_REJECTED, codec_class, new_parser, 
 from bridge.mavlink.stats import LinkStats, OutputStats, log_sparsely
 from bridge.mavlink.tlog import Tlog
 
-__all__ = ["InputSink", "MavlinkLink"]
+__all__ = ["RELAYED_MESSAGES", "InputSink", "MavlinkLink", "relayed_msg_ids"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,21 @@ _JOIN_TIMEOUT_S: Final = 2.0
 _STATUSTEXT_LEN: Final = 50  # STATUSTEXT.text is char[50]
 _HEADER_V1: Final = 6  # bytes before the payload: magic, len, seq, sys, comp, msgid
 _HEADER_V2: Final = 10  # magic, len, incompat, compat, seq, sys, comp, msgid (3 bytes)
+
+
+RELAYED_MESSAGES: Final = ("HEARTBEAT", "COMMAND_LONG", "COMMAND_ACK", "SYSTEM_TIME", "TIMESYNC")
+"""What the link acts on from the autopilot's connection besides its outputs: all the control
+loop need relay to it when the link is not recorded (:meth:`MavlinkLink._handle`)."""
+
+
+def relayed_msg_ids() -> frozenset[int]:
+    """The IDs of :data:`RELAYED_MESSAGES` in the project's dialect.
+
+    Raises:
+        DialectError: the dialect could not be generated or loaded.
+    """
+    dialect = load_dialect()
+    return frozenset(getattr(dialect, f"MAVLINK_MSG_ID_{name}") for name in RELAYED_MESSAGES)
 
 
 class InputSink(Protocol):

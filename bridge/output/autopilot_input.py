@@ -13,9 +13,10 @@ For every chunk read it:
 * decodes the configured motor-output message into the input vector, dates it by the
   autopilot's own clock (:class:`~bridge.mavlink.clock.AutopilotClock`: a packet that sat in a
   buffer is known to be old) and mixes it, refusing NaN, infinite and out-of-range channels;
-* relays every other frame to the main process (:mod:`bridge.mavlink.relay`), which handles
-  everything else the autopilot sends; the outputs too when it records the link (it learns
-  how many arrived from the loop's counters).
+* relays to the main process (:mod:`bridge.mavlink.relay`) the frames it acts on
+  (``InputSetup.relay_msg_ids``: HEARTBEAT, commands, the autopilot's clock), so that it wakes
+  for nothing else; every frame, the outputs too, when it records the link (it learns how many
+  outputs arrived from the loop's counters).
 
 It writes to the link what the main process relays the other way. Nothing here blocks or logs
 per frame: counters go to :class:`~bridge.output.mailbox.LoopStats`.
@@ -60,6 +61,8 @@ class InputSetup:
     valid_range: tuple[float, float]
     channel_range: tuple[float, float] | None  # for axis_channels; None: the mixer's (PWM)
     relay_outputs: bool = False  # relay the autopilot's outputs too (the recording wants them)
+    # The message IDs the main process acts on: only those are relayed (None: every frame).
+    relay_msg_ids: frozenset[int] | None = None
 
 
 class AutopilotInput:
@@ -99,6 +102,7 @@ class AutopilotInput:
         # The main process gets every frame but the autopilot's outputs, which the loop acts on
         # and counts; all of them when it records the link.
         self._relay_outputs = setup.relay_outputs
+        self._relay_msg_ids = setup.relay_msg_ids
         self._clock = AutopilotClock(time_bits=self._decoder.time_bits)
         self._scanner = FrameScanner.for_dialect(load_dialect())
         self._mixer = Mixer(setup.mixer, setup.valid_range, AXIS_VALID_RANGE)
@@ -168,7 +172,7 @@ class AutopilotInput:
             relayed: list[bytes] = []
             for frame in self._scanner.feed(data):
                 fresh |= self._on_frame(frame, received_ns, now_ns)
-                if self._relay_outputs or not self._is_autopilot_output(frame):
+                if self._relays(frame):
                     relayed.append(frame.raw)
             relay = self._relay
             if relayed and relay is not None and not relay.forward(b"".join(relayed)):
@@ -202,6 +206,16 @@ class AutopilotInput:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
+
+    def _relays(self, frame: Frame) -> bool:
+        """Whether the main process gets ``frame``: all of them when it records the link, else
+        those it acts on (not the autopilot's outputs: the loop acts on them and counts them),
+        so that it wakes for nothing else."""
+        if self._relay_outputs:
+            return True
+        if self._relay_msg_ids is not None and frame.msg_id not in self._relay_msg_ids:
+            return False
+        return not self._is_autopilot_output(frame)
 
     def _is_autopilot_output(self, frame: Frame) -> bool:
         return (

@@ -1,20 +1,20 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
-with it and hands the family's neutral telemetry, or the commands it read back, to the state.
+with it and hands the family's neutral telemetry to the state. The bridge's own commands are
+not read back: the output loop says what it sent (:mod:`bridge.daemon.commands_sent`).
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
 udp_multicast another handle of the same bus sees them), since the recording wants every
-frame; otherwise only our ESCs' telemetry, plus the bridge's commands while a feature reads
-them back. :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs either
-way. A malformed frame is counted against the ESC its ID names and dropped; nothing that
-arrives stops the reader. Frames the kernel dropped because the reader fell behind are
-counted too (:attr:`ReaderStats.kernel_drops`).
+frame; otherwise only our ESCs' telemetry. :class:`~bridge.telemetry.state.EscTable` keeps only
+telemetry from our ESCs either way. A malformed frame is counted against the ESC its ID names
+and dropped; nothing that arrives stops the reader. Frames the kernel dropped because the reader
+fell behind are counted too (:attr:`ReaderStats.kernel_drops`).
 
 With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
-frame, the ESC's state after it, and for each command frame every ESC's last command
-(:func:`take_commands`).
+frame, the ESC's state after it (the commands reach it from
+:class:`~bridge.daemon.commands_sent.CommandsSent`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from can.typechecking import CanFilter
 
 from bridge.can_io import receive_drops
 from bridge.errors import CodecError
-from bridge.escs.family import CommandSeen, EscFamily
+from bridge.escs.family import EscFamily
 from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
@@ -56,20 +56,6 @@ class StateRecorder(Protocol):
         """Every ESC's last command, right after commands sent at ``time_s`` (wall) were taken."""
 
 
-def take_commands(
-    table: EscTable,
-    commands: Sequence[CommandSeen],
-    time_s: float,
-    recorder: StateRecorder | None = None,
-) -> None:
-    """The bridge's commands into the ESC state and, when it changed, to ``recorder``: the one
-    place both take them from. Today the reader passes what it reads back from the bus (the
-    frame's receive time); a source that knows the commands without the bus calls this the
-    same way, and the recording follows it."""
-    if table.note_commands(commands) and recorder is not None:
-        recorder.commands(table.last_commands(), time_s)
-
-
 @dataclass
 class ReaderStats:
     """Counters of the CAN reader, updated live."""
@@ -90,19 +76,19 @@ class ReaderStats:
 
 
 def reader_filters(
-    family: EscFamily, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
+    family: EscFamily, esc_ids: Collection[int], *, recording: bool
 ) -> list[CanFilter] | None:
     """The filters for the reader's own bus handle: None (every frame) when ``recording``,
-    since the recording wants every frame; else our ESCs' telemetry, plus the bridge's own
-    commands with ``read_back_commands`` (the ESC state's ``command`` for the actuators/output
-    key). See the family's :meth:`~bridge.escs.family.EscFamily.reader_filters`.
+    since the recording wants every frame; else our ESCs' telemetry only (the bridge's own
+    commands come from the output loop: :mod:`bridge.daemon.commands_sent`). See the family's
+    :meth:`~bridge.escs.family.EscFamily.reader_filters`.
 
     Raises:
         ValueRangeError: an ESC ID the protocol cannot have.
     """
     if recording:
         return None
-    return family.reader_filters(esc_ids, read_back_commands)
+    return family.reader_filters(esc_ids, False)
 
 
 class CanReader:
@@ -206,11 +192,7 @@ class CanReader:
             return
         telemetry = family.telemetry(frame)
         states = self._states
-        if telemetry is None:
-            commands = family.commands_seen(frame)
-            if commands:
-                take_commands(self._table, commands, msg.timestamp or time.time(), states)
-        elif self._table.ingest(telemetry, now_ns):
+        if telemetry is not None and self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
             if states is not None:
                 snapshot = self._table.snapshot_of(telemetry.node_id, now_ns)
