@@ -7,7 +7,8 @@ For every chunk read it:
 
 * finds the frames (:class:`~bridge.mavlink.frames.FrameScanner`: a few µs per frame, no
   pymavlink parser) and keeps those of the configured autopilot (system and component), signed
-  with the configured key when there is one;
+  with the configured key when there is one. A UDP datagram is scanned on its own: a frame cut
+  short at its end is junk, never completed by the next datagram, which may come from anyone;
 * takes the arming state from its HEARTBEAT (and HIL_ACTUATOR_CONTROLS' mode), stamped with
   the kernel's receive time;
 * decodes the configured motor-output message into the input vector, dates it by the
@@ -108,6 +109,7 @@ class AutopilotInput:
             else None
         )
         self._transport: AutopilotTransport | None = None
+        self._whole = False  # each read is a whole datagram: nothing carries to the next
         # What the autopilot said before it restarted, or before the link was reopened, is
         # forgotten: its arming state above all (a new boot is disarmed until it says so).
         self._reboots_seen = 0
@@ -132,7 +134,8 @@ class AutopilotInput:
             LinkError: the link cannot be opened and will not get better by waiting (an
                 address in use, an unknown host).
         """
-        self._transport = open_transport(self._endpoint)
+        transport = self._transport = open_transport(self._endpoint)
+        self._whole = transport.datagrams
 
     @property
     def fd(self) -> int | None:
@@ -160,13 +163,14 @@ class AutopilotInput:
         if transport is None:
             return False
         fresh = False
+        whole = self._whole
         for _ in range(MAX_READS_PER_WAKE):
             chunk = transport.recv()
             if chunk is None:
                 break
             data, received_ns = chunk
             relayed: list[bytes] = []
-            for frame in self._scanner.feed(data):
+            for frame in self._scanner.feed(data, whole=whole):
                 fresh |= self._on_frame(frame, received_ns, now_ns)
                 if self._relay_outputs or not self._is_autopilot_output(frame):
                     relayed.append(frame.raw)

@@ -36,6 +36,10 @@ Kinds (the URL forms of :data:`~bridge.mavlink.endpoints.ACCEPTED_URL_FORMS`, pa
 * ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control; a helper thread
   does the reopening, since a USB adapter's driver sleeps in open() (:class:`SerialTransport`).
 
+A datagram transport (``datagrams``) returns one whole datagram per read: its reader scans each
+datagram on its own. A stream's reads cut frames anywhere, and its reader carries a partial
+frame to the next read.
+
 Clocks: every input is stamped with ``time.monotonic_ns()``. A UDP datagram carries the kernel's
 receive time (``SO_TIMESTAMPNS``), so its stamp says when it arrived even when the loop reads it
 a tick later; the kernel stamps with the wall clock, converted here to the monotonic clock at

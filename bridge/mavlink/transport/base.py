@@ -8,7 +8,7 @@ import socket
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Final, cast
+from typing import ClassVar, Final, cast
 
 from bridge.errors import LinkError
 from bridge.mavlink.endpoints import Endpoint
@@ -86,6 +86,9 @@ class AutopilotTransport(ABC):
 
     endpoint: Endpoint
     stats: TransportStats
+    datagrams: ClassVar[bool] = False
+    """Each :meth:`recv` returns one whole datagram (UDP), so a frame never spans two reads and
+    a reader scans each on its own; False for a byte stream, whose reads cut frames anywhere."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint

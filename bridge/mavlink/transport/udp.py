@@ -51,6 +51,8 @@ def _wall_minus_monotonic_ns() -> int:
 class _DatagramTransport(AutopilotTransport):
     """UDP: one socket, open from start to close, one datagram per read, kernel timestamps."""
 
+    datagrams = True
+
     def __init__(self, endpoint: Endpoint, bind: tuple[str, int] | None) -> None:
         super().__init__(endpoint)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
