@@ -18,35 +18,17 @@ from typing import Any
 
 import pytest
 from conftest import free_port
-from pymavlink.dialects.v10 import ardupilotmega as mavlink1
+from datagram_fuzz import ARMED, AUTOPILOT_PWM, DISARMED, fuzz_datagrams, heartbeat, packer, servo
 
 from bridge.config import build_config
 from bridge.daemon.preflight import plan
-from bridge.mavlink import load_dialect
 from bridge.mavlink.autopilot_address import address_code
 from bridge.mavlink.relay import LoopEnd, relay_pair
 from bridge.output.autopilot_input import AutopilotInput, InputSetup
 from bridge.output.mailbox import InputSnapshot, LoopStats
 from bridge.output.safety import ControlInputs
 
-DIALECT: Any = load_dialect()
-ARMED = 128 | 1  # MAV_MODE_FLAG_SAFETY_ARMED | CUSTOM_MODE_ENABLED
-DISARMED = 1
 HOST = "127.0.0.1"
-
-
-def packer(system: int = 1, component: int = 1, version: int = 2) -> Any:
-    module: Any = DIALECT if version == 2 else mavlink1
-    return module.MAVLink(None, srcSystem=system, srcComponent=component)
-
-
-def heartbeat(mav: Any, base_mode: int) -> bytes:
-    return bytes(mav.heartbeat_encode(2, 3, base_mode, 0, 4).pack(mav))
-
-
-def servo(mav: Any, pwm: int, time_us: int | None = None) -> bytes:
-    stamp = time.monotonic_ns() // 1000 if time_us is None else time_us
-    return bytes(mav.servo_output_raw_encode(stamp & 0xFFFFFFFF, 0, *[pwm] * 8).pack(mav))
 
 
 @dataclass
@@ -305,63 +287,6 @@ FUZZ_SEED = 19
 FUZZ_DATAGRAMS = 10_000
 
 
-def fuzz_datagrams(rng: random.Random, senders: int, count: int) -> Iterator[tuple[int, bytes]]:
-    """(sender index, datagram) for ``count`` datagrams: sender 0 is the autopilot, disarmed,
-    with whole frames only; the others send garbage, genuine frames claiming 1/1 (armed, or
-    outputs other than the autopilot's) or speaking for another system, and frames cut anywhere
-    whose rest opens the next datagram, whoever sends it, the autopilot included. MAVLink 1
-    and 2."""
-    autopilot = packer()
-    claims = [
-        frame
-        for mav in (packer(version=1), packer(version=2))
-        for frame in (
-            heartbeat(mav, ARMED),
-            heartbeat(mav, ARMED | 4),
-            *(servo(mav, pwm) for pwm in (1100, 1900, 2000)),
-        )
-    ]
-    others = [heartbeat(packer(system=2, version=1), ARMED), heartbeat(packer(2, 3), DISARMED)]
-    carry = b""
-    own = 0  # the autopilot's own datagrams
-    for _ in range(count):
-        sender = rng.randrange(senders)
-        if sender == 0:
-            own += 1
-            if carry:  # the rest of someone's cut frame opens the autopilot's datagram
-                yield 0, carry + garbage(rng, 8)
-            elif own % 10 == 0:
-                yield 0, heartbeat(autopilot, DISARMED)
-            else:
-                yield 0, servo(autopilot, 1500)
-            carry = b""
-            continue
-        kind = rng.random()
-        genuine = rng.choice(claims)
-        if kind < 0.5:  # cut anywhere: the next datagram, from anyone, opens with the rest
-            cut = rng.randrange(1, len(genuine))
-            before = rng.choice(others) if rng.random() < 0.3 else b""
-            yield sender, carry + before + genuine[:cut]
-            carry = genuine[cut:]
-            continue
-        if kind < 0.7:
-            body = garbage(rng, 120)
-        elif kind < 0.85:
-            body = genuine  # whole, claiming to be the autopilot, from another address
-        else:
-            body = rng.choice(others)
-        yield sender, carry + body + garbage(rng, 4)
-        carry = b""
-
-
-def garbage(rng: random.Random, most: int) -> bytes:
-    """Up to ``most`` random bytes, one in four of them a magic byte."""
-    data = bytearray(rng.randbytes(rng.randrange(most)))
-    for at in range(0, len(data), 4):
-        data[at] = rng.choice((0xFD, 0xFE))
-    return bytes(data)
-
-
 def test_a_seeded_fuzz_of_datagrams_from_several_senders_never_arms(
     rig: Callable[..., Rig],
 ) -> None:
@@ -378,7 +303,7 @@ def test_a_seeded_fuzz_of_datagrams_from_several_senders_never_arms(
         r.deliver(socks[sender], datagram)
         assert not r.inputs.armed, f"armed by {datagram.hex()} from sender {sender}"
         snapshot = r.snapshot.read()
-        assert snapshot is None or set(snapshot.inputs[:8]) <= {1500.0}
+        assert snapshot is None or set(snapshot.inputs[:8]) <= {float(AUTOPILOT_PWM)}
     elapsed_s = time.monotonic() - started
     stats = r.stats
     # The seeded run: 151 HEARTBEATs and 1 354 outputs from the autopilot, 1 115 frames
