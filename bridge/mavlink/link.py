@@ -145,6 +145,7 @@ class MavlinkLink:
         tlog: BinaryIO | None = None,
         uplink: Callable[[], Any] | None = None,
         needed_rate_hz: float = 0.0,
+        tlog_tap: Callable[[int, bytes], None] | None = None,
     ) -> None:
         """``sink``: receives the autopilot's outputs and arming state; None when the owner of
         the autopilot's link acts on them (the daemon's control loop), which then reports the
@@ -156,6 +157,8 @@ class MavlinkLink:
         (:class:`bridge.mavlink.relay.MainConnection`): the loop owns the real link.
         ``needed_rate_hz``: the slowest output stream the control loop arms on (two inputs
         per input timeout); a slower one is reported loudly. 0: no such limit.
+        ``tlog_tap``: gets every frame recorded in ``tlog`` with its stamp (µs since the epoch),
+        on the thread that records it (the MCAP recording).
 
         Raises:
             DialectError: the project's MAVLink dialect could not be generated or loaded.
@@ -167,7 +170,7 @@ class MavlinkLink:
         self.stats = LinkStats()
         self.output_stats = tuple(OutputStats(url) for url in config.outputs)
         """One per ``[mavlink] outputs`` entry, in that order."""
-        self._tlog = None if tlog is None else Tlog(tlog, self.stats)
+        self._tlog = None if tlog is None else Tlog(tlog, self.stats, tlog_tap)
         self._send_lock = threading.Lock()
         self._codec_lock = threading.Lock()
         self._stop = threading.Event()

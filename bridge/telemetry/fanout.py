@@ -28,7 +28,7 @@ from bridge.telemetry.payload import (
     HealthPayload,
     ZenohHealth,
 )
-from bridge.telemetry.reader import CanReader, Recorder, reader_filters
+from bridge.telemetry.reader import CanReader, Recorder, StateRecorder, reader_filters
 from bridge.telemetry.state import EscTable
 from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut
 
@@ -54,6 +54,7 @@ class Fanout:
         shared_bus: Callable[[], can.BusABC | None] | None = None,
         recorder: Recorder | None = None,
         read_back_commands: bool = True,
+        states: StateRecorder | None = None,
     ) -> None:
         """``shared_bus``: read the output loop's handle instead of opening one of our own.
 
@@ -69,6 +70,7 @@ class Fanout:
         self._shared_bus = shared_bus
         self._recorder = recorder
         self._read_back_commands = read_back_commands
+        self._states = states
         self._own_bus: can.BusABC | None = None
         self.reader: CanReader | None = None
         self.mavlink = MavlinkTelemetry(config.mavlink, link, table)
@@ -112,7 +114,7 @@ class Fanout:
                 "CAN reader receives %s",
                 "every frame" if filters is None else f"what {len(filters)} filters pass",
             )
-        self.reader = CanReader(bus, self.table, self._family, self._recorder)
+        self.reader = CanReader(bus, self.table, self._family, self._recorder, self._states)
         self.reader.start()
         self.mavlink.start()
         if self.zenoh is not None:

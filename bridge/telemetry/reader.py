@@ -11,6 +11,10 @@ them back. :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from o
 way. A malformed frame is counted against the ESC its ID names and dropped; nothing that
 arrives stops the reader. Frames the kernel dropped because the reader fell behind are
 counted too (:attr:`ReaderStats.kernel_drops`).
+
+With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
+frame, the ESC's state after it, and for each command frame every ESC's last command
+(:func:`take_commands`).
 """
 
 from __future__ import annotations
@@ -18,16 +22,17 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import can
 from can.typechecking import CanFilter
 
 from bridge.can_io import receive_drops
 from bridge.errors import CodecError
-from bridge.escs.family import EscFamily
-from bridge.telemetry.state import EscTable
+from bridge.escs.family import CommandSeen, EscFamily
+from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +42,32 @@ JOIN_TIMEOUT_S = 2.0
 DROPS_SAMPLE_PERIOD_NS = 1_000_000_000
 
 Recorder = Callable[[can.Message], None]
+"""Takes every frame read (the candump log)."""
+
+
+class StateRecorder(Protocol):
+    """Takes the ESC state's changes as they happen (the MCAP recording). Called on the thread
+    that feeds the ESC state: keep it short (an append)."""
+
+    def esc(self, snapshot: EscSnapshot, time_s: float) -> None:
+        """An ESC's state right after a telemetry frame that arrived at ``time_s`` (wall)."""
+
+    def commands(self, commands: Sequence[LastCommand], time_s: float) -> None:
+        """Every ESC's last command, right after commands sent at ``time_s`` (wall) were taken."""
+
+
+def take_commands(
+    table: EscTable,
+    commands: Sequence[CommandSeen],
+    time_s: float,
+    recorder: StateRecorder | None = None,
+) -> None:
+    """The bridge's commands into the ESC state and, when it changed, to ``recorder``: the one
+    place both take them from. Today the reader passes what it reads back from the bus (the
+    frame's receive time); a source that knows the commands without the bus calls this the
+    same way, and the recording follows it."""
+    if table.note_commands(commands) and recorder is not None:
+        recorder.commands(table.last_commands(), time_s)
 
 
 @dataclass
@@ -97,11 +128,14 @@ class CanReader:
         table: EscTable,
         family: EscFamily,
         recorder: Recorder | None = None,
+        states: StateRecorder | None = None,
     ) -> None:
+        """``recorder`` takes every frame read, ``states`` the ESC state's changes."""
         self._bus_source = bus if callable(bus) else lambda: bus
         self._table = table
         self._family = family
         self._recorder = recorder
+        self._states = states
         self.stats = ReaderStats()
         # Drops of handles the reader read before the current one (a reopened shared handle
         # starts counting from 0 again), and the current handle's last count.
@@ -171,7 +205,14 @@ class CanReader:
         if frame is None:
             return
         telemetry = family.telemetry(frame)
+        states = self._states
         if telemetry is None:
-            self._table.note_commands(family.commands_seen(frame))
+            commands = family.commands_seen(frame)
+            if commands:
+                take_commands(self._table, commands, msg.timestamp or time.time(), states)
         elif self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
+            if states is not None:
+                snapshot = self._table.snapshot_of(telemetry.node_id, now_ns)
+                if snapshot is not None:
+                    states.esc(snapshot, msg.timestamp or time.time())
