@@ -31,6 +31,7 @@ from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
 from bridge.daemon.absence import AbsenceWatch, EscsHeard
+from bridge.daemon.address_reports import AddressReports
 from bridge.daemon.commands_sent import CommandsSent
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
@@ -129,6 +130,7 @@ class Supervisor:
             self.link.dialect,
         )
         self.link.add_command_handler(self.motor_test.handle_command)
+        self._addresses = AddressReports(config, self.link.statustext)
         self.health_report = HealthReport(
             config, self.stats, self.input_snapshot, self.link, self.motor_test
         )
@@ -302,6 +304,7 @@ class Supervisor:
         self.health_report.sample()
         self.commands_sent.update()
         self._report_states()
+        self._addresses.check(stats)
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]
         if tick_errors != self._tick_errors:

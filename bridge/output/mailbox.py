@@ -318,6 +318,8 @@ STAT_FIELDS = (
     "input_outputs",  # motor-output messages from the autopilot it acted on
     "input_heartbeats",  # HEARTBEATs (arming state) from the autopilot
     "input_foreign",  # motor outputs or HEARTBEATs from any other system or component
+    "input_other_address",  # UDP: frames claiming the autopilot's IDs from another address
+    "input_other_address_from",  # where the latest of those came from (address_code); 0: none
     "input_bad_crc",  # frames of known messages with a bad CRC
     "input_junk_bytes",  # bytes skipped while looking for a frame
     "input_unsigned",  # with a signing key: control messages refused (unsigned, bad, replayed)
@@ -328,6 +330,8 @@ STAT_FIELDS = (
     "link_sent",  # frames from the main process written to the autopilot link
     "link_dropped",  # frames for the autopilot link dropped (link down or full)
     "link_reconnects",
+    "link_autopilot_address",  # UDP: the autopilot's address (address_code); 0: not known yet
+    "link_autopilot_moves",  # UDP: times another address took a silent autopilot's place
     "input_age_us",  # age of the newest input when it was acted on (produced -> acted), µs
     # How many times the loop entered each state, in LoopState's order: the supervisor reports
     # every state entered since it last looked, even one left again before it looked.

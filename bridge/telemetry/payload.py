@@ -226,6 +226,7 @@ class InputHealth:
     age_ms: float
     out_of_order: int
     unsigned: int
+    other_address: int
 
 
 @dataclass(frozen=True, kw_only=True)
