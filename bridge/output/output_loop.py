@@ -263,8 +263,10 @@ class OutputLoop:
         Raises:
             BridgeError: the bus or the link could not be opened (state FAILED).
         """
-        self.open()
+        # Before open(), which ends the STARTING state: the supervisor reads this flag as soon
+        # as the state changes.
         self._stats["realtime"] = set_realtime(self._config.output.realtime_priority)
+        self.open()
         # The loop allocates nothing that needs the cycle collector; a collection pass in the
         # middle of a tick would cost milliseconds, so it is frozen out for the loop's life.
         gc.collect()
