@@ -50,6 +50,7 @@ HEALTH = HealthPayload(
         age_ms=3.0,
         out_of_order=0,
         unsigned=0,
+        other_address=0,
     ),
     link=LinkHealth(relay_dropped=0, sent=0, send_dropped=0, reconnects=0),
     escs_online=1,

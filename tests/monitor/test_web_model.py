@@ -80,6 +80,7 @@ def health(**fields: Any) -> HealthPayload:
             age_ms=-3.0,
             out_of_order=0,
             unsigned=0,
+            other_address=0,
         ),
         link=LinkHealth(relay_dropped=0, sent=20, send_dropped=0, reconnects=0),
         escs_online=4,
@@ -168,6 +169,21 @@ def test_health_items_say_state_arming_link_and_bus() -> None:
     assert items["link"]["text"] == "0 frames dropped, 0 reconnects"
     assert items["bus"]["text"] == "1000 frames in, 0 errors"
     assert {item["level"] for item in items.values()} == {"ok"}
+
+
+def test_every_refused_frame_counts_on_the_autopilots_item() -> None:
+    # Each counter of frames the bridge would not act on, those from another UDP address too.
+    refused = replace(
+        health().input,
+        bad_data=1,
+        invalid=2,
+        mixer_errors=3,
+        out_of_order=4,
+        unsigned=5,
+        other_address=6,
+    )
+    item = health_items(health(input=refused))[1]
+    assert item["text"] == "armed, 50 Hz, newest 0 ms old, 21 refused"
 
 
 @pytest.mark.parametrize(

@@ -180,7 +180,9 @@ def health_items(health: HealthPayload, grew: Grew = lambda counter, value: Fals
     autopilot = f"{'armed' if health.armed else 'disarmed'}, {i.rate_hz:.0f} Hz"
     if i.outputs:  # (the bridge's estimate of the autopilot's clock may put it a little ahead)
         autopilot += f", newest {max(i.age_ms, 0.0):.0f} ms old"
-    refused = i.bad_data + i.invalid + i.mixer_errors + i.out_of_order + i.unsigned
+    refused = (
+        i.bad_data + i.invalid + i.mixer_errors + i.out_of_order + i.unsigned + i.other_address
+    )
     if refused:
         autopilot += f", {refused} refused"
     link = health.link
