@@ -1,5 +1,5 @@
 """Headless Chromium driven over WebDriver (W3C, plain HTTP to Debian's chromedriver): the tests
-of the web monitor and ``bench/web_monitor.py`` watch the page through it.
+of the web monitor and its benchmarks (``bench/_web.py``) watch the page through it.
 
 Five requests are all the page's tests need (new session, go to a URL, run a script, take a
 screenshot, end the session), so this speaks the protocol itself rather than pulling in a
@@ -47,6 +47,17 @@ START_TIMEOUT_S = 30.0  # a browser's start on a loaded machine
 REQUEST_TIMEOUT_S = 120.0  # one command (a page load takes 50 s at load 30 on two cores)
 
 
+def _naming(text: str) -> list[int]:
+    """The live processes whose command line contains ``text`` (a zombie's is empty)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                if text.encode() in (entry / "cmdline").read_bytes():
+                    found.append(int(entry.name))
+    return found
+
+
 def find_browser() -> tuple[str, str] | None:
     """(chromium, chromedriver) on PATH, or None when either is missing."""
     browser = next((path for name in CHROMIUM if (path := shutil.which(name))), None)
@@ -75,12 +86,15 @@ class Browser:
             port = sock.getsockname()[1]
         self._base = f"http://127.0.0.1:{port}"
         # A process group of its own, which Chromium's processes join: close() ends them all,
-        # however the session went.
+        # however the session went. Chromium's crash handlers leave the group (they daemonize)
+        # and keep their database under the configuration directory: set to the temporary
+        # one, it names that directory in their command lines too, where close() finds them.
         self.driver = subprocess.Popen(
             [driver, f"--port={port}"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,
+            env={**os.environ, "XDG_CONFIG_HOME": self._profile.name},
         )
         self.session = ""
         self._closed = False
@@ -90,7 +104,7 @@ class Browser:
                 "binary": browser,
                 "args": [
                     *CHROMIUM_FLAGS,
-                    f"--user-data-dir={self._profile.name}",
+                    f"--user-data-dir={Path(self._profile.name) / 'profile'}",
                     f"--window-size={width},{height}",
                 ],
             }
@@ -185,7 +199,20 @@ class Browser:
         with contextlib.suppress(ProcessLookupError):  # whatever of Chromium is still there
             os.killpg(self.driver.pid, signal.SIGKILL)
         self.driver.wait()
+        self._end_strays()
         self._profile.cleanup()
+
+    def _end_strays(self) -> None:
+        """Kill every process still naming the temporary directory (the crash handlers, which
+        left the group) and wait until none is left."""
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while strays := _naming(self._profile.name):
+            if time.monotonic() > deadline:
+                raise WebDriverError(f"Chromium's processes {strays} outlived SIGKILL")
+            for pid in strays:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, signal.SIGKILL)
+            time.sleep(0.05)
 
     def __enter__(self) -> Browser:
         return self
