@@ -36,6 +36,9 @@ from conftest import ESC_BRIDGE, ROOT, Autopilot, Daemon, can_args, free_port
 SCREENSHOT_ENV = "ESC_BRIDGE_SCREENSHOT"
 SCREENSHOT = ROOT / "docs" / "web-monitor.png"
 PAGE_TIMEOUT_S = 60.0  # bridges, simulators, Zenoh and a browser starting on a loaded machine
+# How far back a card's rpm is looked for among its bridge's esc/status samples: the page is
+# live, but a load of 25 on two cores holds any of its processes for seconds.
+RECENT_S = 10.0
 
 # Every card as the page shows it: name, class, summary, alerts, health, rows by motor.
 CARDS = """
@@ -146,6 +149,11 @@ class Published:
         with self._lock:
             return [rpm for when, name, rpm in self.rpm if name == vehicle and when >= t]
 
+    def of(self, vehicle: str) -> list[tuple[float, list[int | None]]]:
+        """Every (monotonic time, rpm) of ``vehicle``."""
+        with self._lock:
+            return [(when, rpm) for when, name, rpm in self.rpm if name == vehicle]
+
     def close(self) -> None:
         self.session.close()  # type: ignore[no-untyped-call]
 
@@ -237,19 +245,38 @@ def test_two_vehicles_failures_phone_width_and_a_bridge_going_away(
 
             wait_for(browser, both_spinning, PAGE_TIMEOUT_S)
 
-            # The rpm of each card are ones its own bridge published in the last seconds.
-            for _ in range(3):
+            # The rpm of each card are ones its own bridge published in the last seconds, and
+            # never the other's. The monitor and this test's subscriber get each sample
+            # separately, and under load either may miss one (the bridge's publisher drops
+            # rather than wait): a card's rpm must match, at three looks out of at most 30.
+            matched = {"alpha": 0, "beta": 0}
+            misses: list[tuple[str, list[int | None], list[float]]] = []
+            for _ in range(30):
                 asked = time.monotonic()
                 seen = cards(browser)
-                for name in ("alpha", "beta"):
+                time.sleep(0.5)  # for a sample the monitor got first
+                for name, other in (("alpha", "beta"), ("beta", "alpha")):
                     shown = rpm(seen[name])
-                    recent = published.since(name, asked - 3.0)
-                    assert shown in recent, (name, shown, recent[-5:])
-                    other = "beta" if name == "alpha" else "alpha"
-                    assert shown not in published.since(other, asked - 3.0)
-                time.sleep(0.5)
+                    if shown in published.since(name, asked - RECENT_S):
+                        matched[name] += 1
+                    else:
+                        ages = [asked - t for t, rpms in published.of(name) if rpms == shown]
+                        misses.append((name, shown, ages))
+                    assert shown not in published.since(other, asked - RECENT_S), (name, shown)
+                if min(matched.values()) >= 3:
+                    break
+            assert min(matched.values()) >= 3, (matched, "missed (vehicle, rpm, s ago):", misses)
 
-            seen = cards(browser)
+            # What stands out, as soon as the page shows it (at a load of 22, a simulator's
+            # stall left all of beta's ESCs offline for a moment).
+            seen = wait_for(
+                browser,
+                lambda s: (
+                    s["alpha"]["alerts"] == ["motor 2: overtemp"]
+                    and s["beta"]["alerts"] == ["motor 3: offline"]
+                ),
+                PAGE_TIMEOUT_S,
+            )
             alpha, beta = seen["alpha"], seen["beta"]
             assert list(seen) == ["alpha", "beta"]  # in name order
             # alpha's motor 2 reports over-temperature: said in the banner, red in the table.
@@ -289,7 +316,7 @@ def test_two_vehicles_failures_phone_width_and_a_bridge_going_away(
                 "return window.innerWidth <= 520 && "
                 "document.documentElement.scrollWidth <= window.innerWidth && "
                 "getComputedStyle(document.querySelector('td[data-col=node]')).display",
-                10,
+                PAGE_TIMEOUT_S,
             )
             assert narrow == "none"
             browser.set_window(1400, 1000)
@@ -303,10 +330,15 @@ def test_two_vehicles_failures_phone_width_and_a_bridge_going_away(
             assert stale["beta"]["alerts"] == []
             assert {row["state"] for row in stale["beta"]["rows"].values()} == {"stale"}
             first = float(re.findall(r"[\d.]+", stale["beta"]["summary"])[0])
-            time.sleep(1.5)
-            later = cards(browser)
-            assert float(re.findall(r"[\d.]+", later["beta"]["summary"])[0]) > first
-            assert later["alpha"]["summary"] == "4/4 ESCs online"
+            # The age grows, and alpha's card stays live beside it.
+            wait_for(
+                browser,
+                lambda s: (
+                    float(re.findall(r"[\d.]+", s["beta"]["summary"])[0]) > first + 1.0
+                    and s["alpha"]["summary"] == "4/4 ESCs online"
+                ),
+                PAGE_TIMEOUT_S,
+            )
     finally:
         status, err = stop(monitor)
         published.close()
@@ -320,7 +352,9 @@ def test_the_demo_and_a_plain_web_monitor_beside_it(
     # another, nothing else. Their own runtime directory: no other test's demo is found.
     env = {"XDG_RUNTIME_DIR": str(tmp_path)}
     demo = subprocess.Popen(
-        [ESC_BRIDGE, "demo", "--plain", "--duration", "60"],
+        # Flying until this test stops it (at a load of 25, one flight ended before the page
+        # showed it).
+        [ESC_BRIDGE, "demo", "--plain", "--duration", "600"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         env={**os.environ, **env},
@@ -334,8 +368,12 @@ def test_the_demo_and_a_plain_web_monitor_beside_it(
         monitor, url = start_web_monitor(env=env)
         with Browser() as browser:
             browser.get(url)
-            seen = wait_for(browser, lambda s: any(r for r in rpm(s["demo"])), PAGE_TIMEOUT_S * 1.5)
-            assert seen["demo"]["summary"] == "4/4 ESCs online"
+            # The demo's card, live (a stale one keeps its last rpm): every ESC online, spinning.
+            wait_for(
+                browser,
+                lambda s: s["demo"]["summary"] == "4/4 ESCs online" and any(rpm(s["demo"])),
+                PAGE_TIMEOUT_S * 1.5,
+            )
     finally:
         if monitor is not None:
             status, err = stop(monitor)
