@@ -9,9 +9,6 @@ driver and read by its own decoder, so the values and units are those a read-bac
 
 from __future__ import annotations
 
-import time
-from collections.abc import Sequence
-
 import can
 
 from bridge.config import BridgeConfig
@@ -21,38 +18,24 @@ from bridge.escs.drivers import make_driver
 from bridge.escs.family import CommandSeen
 from bridge.output.mailbox import SENT_COMMANDS, SENT_TEST, Sent, SentCommands
 from bridge.output.motor_test import test_frames
-from bridge.telemetry.reader import StateRecorder
 from bridge.telemetry.state import EscTable
-
-
-def take_commands(
-    table: EscTable,
-    commands: Sequence[CommandSeen],
-    time_s: float,
-    recorder: StateRecorder | None = None,
-) -> None:
-    """The bridge's commands into the ESC state and, when they changed, to ``recorder`` (the
-    MCAP's ``/bridge/commands``): the one place both take them from, at ``time_s`` (wall)."""
-    if table.note_commands(commands) and recorder is not None:
-        recorder.commands(table.last_commands(), time_s)
 
 
 class CommandsSent:
     """Brings the loop's newest commands into ``table``; :meth:`update` now and then (the
-    supervisor's watch, a few times a second)."""
+    supervisor's watch, ten times a second). Not while recording: the recording reads every
+    frame on the bus, so the reader takes the commands from there, each one as sent."""
 
     def __init__(
         self,
         config: BridgeConfig,
         sent: SentCommands,
         table: EscTable,
-        recorder: StateRecorder | None = None,
     ) -> None:
         self._family = registry.family(config.output.protocol)
         self._driver = make_driver(config)  # a copy of the loop's: its frames, never sent
         self._sent = sent
         self._table = table
-        self._recorder = recorder
         self._seq = 0
 
     def update(self) -> None:
@@ -63,7 +46,7 @@ class CommandsSent:
         if record is None:
             return
         self._seq = record.seq
-        take_commands(self._table, self._commands(record), time.time(), self._recorder)
+        self._table.note_commands(self._commands(record))
 
     def _commands(self, record: Sent) -> list[CommandSeen]:
         driver, family = self._driver, self._family
