@@ -89,7 +89,7 @@ def reader_filters(
     """
     if recording:
         return None
-    return family.reader_filters(esc_ids, False)
+    return family.reader_filters(esc_ids)
 
 
 class CanReader:
