@@ -462,8 +462,9 @@ def phase_start(name: str) -> float:
 
 
 def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
-    """One frame of a one-frame family (CKESC, FT) through its decoder into ``table``, as the
-    CAN reader does: telemetry ingested (True if from one of its ESCs), commands noted."""
+    """One frame of a one-frame family (CKESC, FT) through its decoder into ``table``:
+    telemetry ingested as the CAN reader does (True if from one of its ESCs), commands noted as
+    the loop's commands are (:mod:`bridge.daemon.commands_sent`)."""
     family = registry.families_of(msg.arbitration_id)[0]
     decoder = family.decoder()  # one frame is one message for the families fed here
     frame = decoder.decode(msg)
