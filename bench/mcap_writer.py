@@ -37,12 +37,12 @@ from typing import Any
 
 from _stats import percentile
 
-from bridge.daemon.commands_sent import take_commands
 from bridge.escs.family import CommandSeen, EscTelemetry
 from bridge.mavlink import load_dialect
 from bridge.mavlink.traffic import TrafficReader
 from bridge.telemetry.mcap_channels import metadata
 from bridge.telemetry.mcap_out import LogHandler, McapRecording
+from bridge.telemetry.reader import take_commands
 from bridge.telemetry.state import EscTable
 
 COMMAND_RATE_HZ = 400

@@ -144,8 +144,11 @@ class Supervisor:
             states=mcap,
         )
         self.health_report.fanout = self.fanout
-        # Each ESC's command comes from the loop, not read back off the bus.
-        self.commands_sent = CommandsSent(config, self.sent, self.fanout.table, mcap)
+        # Each ESC's command comes from the loop, not read back off the bus; a recording reads
+        # every frame anyway and takes them there (the reader), each as sent.
+        self.commands_sent = (
+            CommandsSent(config, self.sent, self.fanout.table) if mcap is None else None
+        )
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._reported_state = LoopState.STARTING
@@ -300,7 +303,8 @@ class Supervisor:
                 ),
             )
         self.health_report.sample()
-        self.commands_sent.update()
+        if self.commands_sent is not None:
+            self.commands_sent.update()
         self._report_states()
         self._addresses.check(stats)
         self.motor_test.watch()

@@ -2,8 +2,8 @@
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
 with the family's decoder of its own and hands the neutral telemetry to the state. The bridge's
-own commands are not read back: the output loop says what it sent
-(:mod:`bridge.daemon.commands_sent`).
+own commands are not read back for the state: the output loop says what it sent
+(:mod:`bridge.daemon.commands_sent`), except while recording (below).
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
@@ -14,8 +14,9 @@ and dropped; nothing that arrives stops the reader. Frames the kernel dropped be
 fell behind are counted too (:attr:`ReaderStats.kernel_drops`).
 
 With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
-frame, the ESC's state after it (the commands reach it from
-:class:`~bridge.daemon.commands_sent.CommandsSent`).
+frame, the ESC's state after it, and for each command frame every ESC's last command
+(:func:`take_commands`): the recording reads every frame anyway, and so records each command as
+it was on the bus, not the loop's newest ten times a second.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from can.typechecking import CanFilter
 
 from bridge.can_io import receive_drops
 from bridge.errors import CodecError
-from bridge.escs.family import EscFamily
+from bridge.escs.family import CommandSeen, EscFamily
 from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,18 @@ class StateRecorder(Protocol):
 
     def commands(self, commands: Sequence[LastCommand], time_s: float) -> None:
         """Every ESC's last command, right after commands sent at ``time_s`` (wall) were taken."""
+
+
+def take_commands(
+    table: EscTable,
+    commands: Sequence[CommandSeen],
+    time_s: float,
+    recorder: StateRecorder | None = None,
+) -> None:
+    """Commands into the ESC state and, when they changed, to ``recorder`` (the MCAP's
+    ``/bridge/commands``) at ``time_s`` (wall)."""
+    if table.note_commands(commands) and recorder is not None:
+        recorder.commands(table.last_commands(), time_s)
 
 
 @dataclass
@@ -199,3 +212,7 @@ class CanReader:
                 snapshot = self._table.snapshot_of(telemetry.node_id, now_ns)
                 if snapshot is not None:
                     states.esc(snapshot, msg.timestamp or time.time())
+        elif states is not None:
+            commands = decoder.commands_seen(frame)
+            if commands:
+                take_commands(self._table, commands, msg.timestamp or time.time(), states)

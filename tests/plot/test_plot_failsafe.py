@@ -5,6 +5,7 @@ bridge's FAILSAFE report, every ESC stopped while armed, and the ESC's failure f
 
 from __future__ import annotations
 
+import re
 import subprocess
 import time
 from collections.abc import Callable
@@ -113,4 +114,4 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
     picture = record / f"{files.name}-plot" / "esc-2.png"
     assert mpl_image.imread(picture).shape == (1100, 1400, 4)
     page = (record / f"{files.name}-plot" / "index.html").read_text()
-    assert "over temperature (from" in page
+    assert "over temperature (from" in page, re.findall(r"<tr>.*?</tr>", page, re.S)
