@@ -37,7 +37,7 @@ import can
 import zenoh
 from _common import ESC_BRIDGE, GROUP, bridge_command, free_port, log_tail
 
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 # The tests' WebDriver client: one copy of it.
@@ -98,14 +98,14 @@ class EscPlayer:
                 if node == 1 and marker is not None:
                     rpm = marker
                 for message in (
-                    ckesc.Msg1(rpm, 600, ckesc.Msg1Status.RUNNING),
-                    ckesc.Msg2(16.4, 2.0 + node / 4, 40),
-                    ckesc.Msg3(40, 35, 45 + node, 38),
+                    records.Msg1(rpm, 600, records.Msg1Status.RUNNING),
+                    records.Msg2(16.4, 2.0 + node / 4, 40),
+                    records.Msg3(40, 35, 45 + node, 38),
                 ):
-                    priority = ckesc.default_priority(message)
-                    frame = ckesc.CkescFrame(priority, node, None, transfer_id, message)
-                    self.bus.send(ckesc.encode(frame))
-                    if node == 1 and marker is not None and isinstance(message, ckesc.Msg1):
+                    priority = codec.default_priority(message)
+                    frame = codec.CkescFrame(priority, node, None, transfer_id, message)
+                    self.bus.send(codec.encode(frame))
+                    if node == 1 and marker is not None and isinstance(message, records.Msg1):
                         with self._lock:
                             self._sent.setdefault(marker, time.time())
             transfer_id = (transfer_id + 1) % 32

@@ -19,7 +19,7 @@ would otherwise keep the bridge's loop process from starting in time).
 Cases: CKESC RawCommand_12b x8 at 400 Hz (two frames a tick) and FT current mode x4 at 100 Hz
 per ESC (one frame a tick, 400 ticks/s); without and with ESC telemetry on the bus (``esc-bridge
 sim``: simulated ESCs that answer the commands at their families' own telemetry rates); idle,
-and beside two busy processes (``bridge/sim/load.py``'s ``busy2``). The contenders of a case
+and beside two busy processes (``loadgen/load.py``'s ``busy2``). The contenders of a case
 take turns, run after run, so that the machine's load falls on all of them alike.
 
 Beside the contender, all on a udp_multicast CAN bus of this machine and loopback MAVLink:
@@ -105,9 +105,12 @@ from _stats import percentile
 from can.interfaces.udp_multicast.utils import unpack_message
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.mavlink import load_dialect
-from bridge.sim.load import preset
+from loadgen.load import preset
 
 PILOT_HZ = 200
 HEARTBEAT_EVERY = PILOT_HZ // 10
@@ -155,13 +158,13 @@ def frame_value(protocol: str, data: bytes) -> tuple[int, int] | None:
     try:
         msg = unpack_message(data)
         if protocol == "ckesc":
-            frame = ckesc.decode(msg)
+            frame = ckesc_codec.decode(msg)
             if frame is None:
                 return None
-            if not isinstance(frame.message, ckesc.RawCommand12b):
+            if not isinstance(frame.message, ckesc_records.RawCommand12b):
                 return -1, 0
             return frame.message.group, 1000 + frame.message.throttles[0] // 2
-        ft_frame = ft.decode(msg)
+        ft_frame = ft_codec.decode(msg)
     except (CodecError, ValueError, TypeError):
         return None
     if ft_frame is None:
@@ -272,14 +275,18 @@ def plain_worker(
             pwm = [getattr(msg, f"servo{i + 1}_raw") for i in range(escs)]
         fractions = [min(max((p - 1000) / 1000, 0.0), 1.0) for p in pwm]
         if protocol == "ckesc":
-            throttles = [int(f * ckesc.THROTTLE_MAX + 0.5) for f in fractions]
+            throttles = [int(f * ckesc_records.THROTTLE_MAX + 0.5) for f in fractions]
             for group in groups:
-                bus.send(ckesc.encode_raw_12b(group, throttles[4 * group - 4 : 4 * group], tid))
+                bus.send(
+                    ckesc_codec.encode_raw_12b(group, throttles[4 * group - 4 : 4 * group], tid)
+                )
                 tid = (tid + 1) & 31
         else:
             esc = tick % escs
             current = fractions[esc] * FT_MAX_CURRENT_A
-            bus.send(ft.encode_command(esc + 1, ft.Command.SET_CURRENT_GEAR_CRC16, current))
+            bus.send(
+                ft_codec.encode_command(esc + 1, ft_records.Command.SET_CURRENT_GEAR_CRC16, current)
+            )
         tick += 1
         time.sleep(period)
     bus.shutdown()

@@ -8,6 +8,10 @@ because a misspelt safety setting that is silently ignored is worse than a refus
 Every key is documented in ``config/README.md``; a test keeps that page and this module in step.
 The keys' validators are in :mod:`bridge.config_checks`, reading a file and laying the command
 line over it in :mod:`bridge.config_file` (the subcommands' one merge: ``bridge.cli._common``).
+The ESC family on the bus checks its own ``[escs]`` keys (:meth:`BridgeConfig.esc_setup`).
+
+A little over 600 lines, one job: most of it is the table of every section's keys, with their
+defaults and documentation, which reads best whole.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from bridge.config_checks import (
 )
 from bridge.errors import ConfigError
 from bridge.escs import registry
+from bridge.escs.family import EscFamily, EscSetup
 
 if TYPE_CHECKING:
     from bridge.mixing.definition import MixerDefinition
@@ -454,6 +459,15 @@ class BridgeConfig:
         return self.can.bitrate or registry.family(self.output.protocol).default_bitrate
 
     @property
+    def family(self) -> EscFamily:
+        return registry.family(self.output.protocol)
+
+    @property
+    def esc_setup(self) -> EscSetup[Any]:
+        """The family's keys and the ESC IDs, as its check (passed already) returns them."""
+        return _checked_setup(self)
+
+    @property
     def command_sender_ids(self) -> frozenset[int]:
         """The system IDs whose motor-moving commands are obeyed: ``[mavlink] command_senders``,
         or 255 (a ground station's usual ID) and the autopilot's system ID."""
@@ -532,15 +546,48 @@ def _check_cross_section(config: BridgeConfig) -> None:
                 f"{source}: [mavlink] output_messages: {url!r} is not one of [mavlink] outputs "
                 f"({listed}); expected an output URL written exactly as in outputs"
             )
-    for family in registry.families():
-        family.check_config(config)
+    if ids := config.escs.ids:
+        _per_esc_lists(config, len(ids), f"ids has {len(ids)}", "ESC")
+    _checked_setup(config)
+
+
+def _per_esc_lists(config: BridgeConfig, n: int, whose: str, each: str) -> dict[str, Any]:
+    """The family's per-ESC lists (keys made with ``per_esc=True``), ``n`` entries each (1..n
+    when not set).
+
+    Raises:
+        ConfigError: a list of another length (``whose`` is ``n`` entries long).
+    """
+    keys, lists = config.escs.keys(config.output.protocol), {}
+    for name in (f.name for f in fields(keys) if f.metadata["per_esc"]):
+        values = getattr(keys, name)
+        if values and len(values) != n:
+            raise ConfigError(
+                f"{config.source}: [escs] {name} has {len(values)} entries but {whose}; "
+                f"expected one per {each}"
+            )
+        lists[name] = values or tuple(range(1, n + 1))
+    return lists
+
+
+def _checked_setup(config: BridgeConfig) -> EscSetup[Any]:
+    """The family's check of its keys: only the selected family's are checked against the
+    rest (the others' for form only)."""
+    family = config.family
+    setup = EscSetup(config.escs.ids, config.escs.keys(family.name))
+    try:
+        return family.check(setup, config.rate_hz)
+    except ConfigError as exc:
+        raise ConfigError(f"{config.source}: {exc}") from None
 
 
 def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
-    """Fill the ESC lists' defaults (IDs and channels 1..N) once the mixer's size is known.
+    """Fill the ESC lists' defaults (IDs and the family's per-ESC lists, 1..N) once the
+    mixer's size is known, and check the family's keys against them.
 
     Raises:
-        ConfigError: the configured lists do not have one entry per mixer output.
+        ConfigError: the configured lists do not have one entry per mixer output, or the
+            family cannot drive these ESCs so.
     """
     escs = config.escs
     if escs.ids and len(escs.ids) != n_outputs:
@@ -548,17 +595,20 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             f"{config.source}: [escs] ids has {len(escs.ids)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
         )
-    config = replace(config, escs=replace(escs, ids=escs.ids or tuple(range(1, n_outputs + 1))))
-    families = {
-        family.name: family.with_esc_count(config, n_outputs) for family in registry.families()
-    }
+    whose = f"mixer {config.mixer.name!r} has {n_outputs} outputs"
+    sized = _per_esc_lists(config, n_outputs, whose, "output")
+    name = config.output.protocol
+    families = {**escs.families, name: replace(escs.keys(name), **sized)}
+    ids = escs.ids or tuple(range(1, n_outputs + 1))
+    config = replace(config, escs=replace(escs, ids=ids, families=families))
+    _checked_setup(config)
     pole_pairs = config.telemetry.pole_pairs
     if isinstance(pole_pairs, tuple) and len(pole_pairs) != n_outputs:
         raise ConfigError(
             f"{config.source}: [telemetry] pole_pairs has {len(pole_pairs)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
         )
-    return replace(config, escs=replace(config.escs, families=families))
+    return config
 
 
 def with_mixer_esc_count(
@@ -575,12 +625,3 @@ def with_mixer_esc_count(
 
         mixer = load_mixer(config.mixer.name)
     return with_esc_count(config, len(mixer.outputs))
-
-
-def documented_keys() -> list[tuple[str, str, Any, str]]:
-    """(section, key, default, doc) for every key, for docs and the test that checks them."""
-    rows = []
-    for name, cls in SECTIONS.items():
-        for f in _section_fields(cls):
-            rows.append((name, f.name, f.default, f.metadata["doc"]))
-    return rows

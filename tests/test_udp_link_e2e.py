@@ -22,7 +22,7 @@ from datagram_fuzz import ARMED as ARMED_MODE
 from datagram_fuzz import DISARMED, fuzz_datagrams, heartbeat, packer
 from test_daemon_e2e import ARM_TIMEOUT_S, ckesc_throttles, expect_throttles
 
-from bridge.sim.load import preset
+from loadgen.load import preset
 
 HOST = "127.0.0.1"
 SAFE = (0, 0, 0, 0)

@@ -13,8 +13,6 @@ import can
 
 from bridge.config import BridgeConfig
 from bridge.errors import CodecError
-from bridge.escs import registry
-from bridge.escs.drivers import make_driver
 from bridge.escs.family import CommandSeen
 from bridge.output.mailbox import SENT_COMMANDS, SENT_TEST, Sent, SentCommands
 from bridge.output.motor_test import test_frames
@@ -32,8 +30,9 @@ class CommandsSent:
         sent: SentCommands,
         table: EscTable,
     ) -> None:
-        self._family = registry.family(config.output.protocol)
-        self._driver = make_driver(config)  # a copy of the loop's: its frames, never sent
+        # A copy of the loop's driver (its frames are never sent) and a decoder of their own.
+        self._driver = config.family.driver(config.esc_setup)
+        self._decoder = config.family.decoder()
         self._sent = sent
         self._table = table
         self._seq = 0
@@ -49,7 +48,7 @@ class CommandsSent:
         self._table.note_commands(self._commands(record))
 
     def _commands(self, record: Sent) -> list[CommandSeen]:
-        driver, family = self._driver, self._family
+        driver, decoder = self._driver, self._decoder
         frames: list[can.Message] = []
         for tick in range(driver.ticks_per_cycle):
             if record.kind == SENT_COMMANDS:
@@ -61,9 +60,9 @@ class CommandsSent:
         seen: list[CommandSeen] = []
         for frame in frames:
             try:
-                decoded = family.decode(frame, self._table.node_set)
+                decoded = decoder.decode(frame, self._table.node_set)
             except CodecError:
                 continue
-            if decoded is not None and family.telemetry(decoded) is None:
-                seen += family.commands_seen(decoded)
+            if decoded is not None and decoder.telemetry(decoded) is None:
+                seen += decoder.commands_seen(decoded)
         return seen

@@ -1,8 +1,8 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
-with it and hands the family's neutral telemetry to the state. The bridge's own commands are
-not read back for the state: the output loop says what it sent
+with the family's decoder of its own and hands the neutral telemetry to the state. The bridge's
+own commands are not read back for the state: the output loop says what it sent
 (:mod:`bridge.daemon.commands_sent`), except while recording (below).
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
@@ -102,7 +102,7 @@ def reader_filters(
     """
     if recording:
         return None
-    return family.reader_filters(esc_ids, False)
+    return family.reader_filters(esc_ids)
 
 
 class CanReader:
@@ -133,7 +133,7 @@ class CanReader:
         """``recorder`` takes every frame read, ``states`` the ESC state's changes."""
         self._bus_source = bus if callable(bus) else lambda: bus
         self._table = table
-        self._family = family
+        self._decoder = family.decoder()
         self._recorder = recorder
         self._states = states
         self.stats = ReaderStats()
@@ -195,16 +195,16 @@ class CanReader:
         stats.frames += 1
         if self._recorder is not None:
             self._recorder(msg)
-        family = self._family
+        decoder = self._decoder
         try:
-            frame = family.decode(msg, self._table.node_set)
+            frame = decoder.decode(msg, self._table.node_set)
         except CodecError:
             stats.malformed += 1
-            self._table.count_error(family.node_of(msg), now_ns)
+            self._table.count_error(decoder.node_of(msg), now_ns)
             return
         if frame is None:
             return
-        telemetry = family.telemetry(frame)
+        telemetry = decoder.telemetry(frame)
         states = self._states
         if telemetry is not None and self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
@@ -213,6 +213,6 @@ class CanReader:
                 if snapshot is not None:
                     states.esc(snapshot, msg.timestamp or time.time())
         elif states is not None:
-            commands = family.commands_seen(frame)
+            commands = decoder.commands_seen(frame)
             if commands:
                 take_commands(self._table, commands, msg.timestamp or time.time(), states)

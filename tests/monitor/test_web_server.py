@@ -23,7 +23,7 @@ from conftest import ESC_BRIDGE
 
 from bridge.config import build_config
 from bridge.errors import ConfigError, LinkError
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.monitor import CanSource
 from bridge.monitor.web import WebMonitor, parse_address
 from bridge.monitor.web.server import CLIENT_QUEUE, _Client
@@ -35,11 +35,11 @@ def ckesc_telemetry(nodes: range, rpm: int) -> list[can.Message]:
     frames = []
     for node in nodes:
         for message in (
-            ckesc.Msg1(rpm + node, 500, ckesc.Msg1Status.RUNNING),
-            ckesc.Msg2(24.25, 2.5, 40),
+            records.Msg1(rpm + node, 500, records.Msg1Status.RUNNING),
+            records.Msg2(24.25, 2.5, 40),
         ):
-            frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, 0, message)
-            frames.append(ckesc.encode(frame))
+            frame = codec.CkescFrame(codec.default_priority(message), node, None, 0, message)
+            frames.append(codec.encode(frame))
     return frames
 
 

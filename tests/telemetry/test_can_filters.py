@@ -43,7 +43,11 @@ from bridge.can_io import (
 )
 from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
-from bridge.escs import ckesc, ft, registry, uavcan_v0
+from bridge.escs import registry, uavcan_v0
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.escs.ft.sim import SimFt
 from bridge.mavlink.link import MavlinkLink
 from bridge.sim.runner import Simulator, make_escs
@@ -56,9 +60,9 @@ MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's I
 CAN_EFF_FLAG = 0x8000_0000  # linux/can.h: the extended-frame flag in a can_id
 
 
-def telemetry_filters(protocol: str, ids: Collection[int], read_back: bool) -> list[CanFilter]:
-    """The family's kernel filters for its ESCs' telemetry (and commands, with ``read_back``)."""
-    return registry.family(protocol).reader_filters(ids, read_back)
+def telemetry_filters(protocol: str, ids: Collection[int]) -> list[CanFilter]:
+    """The family's kernel filters for its ESCs' telemetry."""
+    return registry.family(protocol).reader_filters(ids)
 
 
 # The ID layouts, from docs/protocols.md §2.1, §3.2 and §4.2 rather than from bridge/can_io.py.
@@ -70,24 +74,19 @@ FT_COMMANDS = (*range(0x00, 0x06), *range(0x12, 0x1C))
 _channels = itertools.count()
 
 
-def is_ours(
-    protocol: str, ids: Collection[int], read_back: bool, can_id: int, extended: bool
-) -> bool:
-    """Whether a frame is telemetry from one of ``ids`` (or, with ``read_back``, a command the
-    ESC state reads back), by its ID alone."""
+def is_ours(protocol: str, ids: Collection[int], can_id: int, extended: bool) -> bool:
+    """Whether a frame is telemetry from one of ``ids``, by its ID alone."""
     if not extended:
         return False
     if protocol == "ckesc":
         if can_id & 0x80:  # a service frame
             return False
         type_id, node = can_id >> 8 & 0xFFFF, can_id & 0x7F
-        return (type_id in CKESC_TELEMETRY and node in ids) or (
-            read_back and type_id in CKESC_COMMANDS and node == 0
-        )
+        return type_id in CKESC_TELEMETRY and node in ids
     if can_id >> 16:
         return False
     esc, command = can_id >> 8, can_id & 0xFF
-    return esc in ids and (command in FT_TELEMETRY or (read_back and command in FT_COMMANDS))
+    return esc in ids and command in FT_TELEMETRY
 
 
 def kernel_matches(filters: list[CanFilter], can_id: int, extended: bool) -> bool:
@@ -208,7 +207,7 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
     telemetry from our IDs) and random IDs; every one checked against the filters."""
     rng = random.Random(seed)
     probe = can.Bus(interface="virtual", channel=f"junk-{next(_channels)}")
-    probe.set_filters(telemetry_filters(protocol, ids, False))
+    probe.set_filters(telemetry_filters(protocol, ids))
     ours = sorted(ids)
     frames: list[can.Message] = []
     while len(frames) < n:
@@ -217,25 +216,27 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
         if kind == 0:  # another ESC's telemetry
             esc = rng.choice([i for i in range(1, 126) if i not in ids])
             can_id = (
-                ft.can_id(esc, rng.choice(FT_TELEMETRY))
+                ft_records.can_id(esc, rng.choice(FT_TELEMETRY))
                 if protocol == "ft"
                 else uavcan_v0.message_id(31, rng.choice(CKESC_TELEMETRY), esc)
             )
         elif kind == 1:  # the bridge's own commands
             can_id = (
-                ft.can_id(rng.choice(ours), rng.choice(FT_COMMANDS))
+                ft_records.can_id(rng.choice(ours), rng.choice(FT_COMMANDS))
                 if protocol == "ft"
                 else uavcan_v0.message_id(0, rng.choice(CKESC_COMMANDS), 0)
             )
         elif kind == 2:  # our telemetry ID, but an 11-bit frame
-            can_id, extended = ft.can_id(rng.choice(ours), FT_TELEMETRY[0]) & 0x7FF, False
+            can_id, extended = ft_records.can_id(rng.choice(ours), FT_TELEMETRY[0]) & 0x7FF, False
         elif kind == 3:  # our FT telemetry ID with bits 28..16 set: not FT
-            can_id = rng.randrange(1, 0x2000) << 16 | ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
+            can_id = rng.randrange(1, 0x2000) << 16 | ft_records.can_id(
+                rng.choice(ours), FT_TELEMETRY[1]
+            )
         elif kind == 4:  # the other protocol's telemetry from one of our IDs
             can_id = (
-                uavcan_v0.message_id(31, ckesc.TYPE_MSG1, rng.choice(ours))
+                uavcan_v0.message_id(31, ckesc_records.TYPE_MSG1, rng.choice(ours))
                 if protocol == "ft"
-                else ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
+                else ft_records.can_id(rng.choice(ours), FT_TELEMETRY[1])
             )
         else:
             can_id = rng.getrandbits(29)
@@ -252,22 +253,20 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
 
 
 @pytest.mark.parametrize(
-    ("protocol", "ids", "read_back", "count"),
+    ("protocol", "ids", "count"),
     [
-        ("ckesc", [1, 2, 3, 4], False, 12),  # 4 type blocks (20050-1, -55, -63, 20064) x 3
-        ("ckesc", [1, 2, 3, 4], True, 14),  # + 2 for RawCommand 20100-20101, 20102 from node 0
-        ("ckesc", [1, 2, 3, 4, 5, 6], False, 12),  # {1,5}, {2,3}, {4,6}: still 3 node blocks
-        ("ckesc", [7], False, 4),
-        ("ft", [1, 2, 3, 4], False, 6),  # {0x0B}, {0x0C, 0x0D} x 3
-        ("ft", [1, 2, 3, 4], True, 18),  # 19 command IDs in 6 blocks
-        ("ft", [0, 1, 2, 3, 4, 5, 6, 7], False, 2),
+        ("ckesc", [1, 2, 3, 4], 12),  # 4 type blocks (20050-1, -55, -63, 20064) x 3
+        ("ckesc", [1, 2, 3, 4, 5, 6], 12),  # {1,5}, {2,3}, {4,6}: still 3 node blocks
+        ("ckesc", [7], 4),
+        ("ft", [1, 2, 3, 4], 6),  # {0x0B}, {0x0C, 0x0D} x 3
+        ("ft", [0, 1, 2, 3, 4, 5, 6, 7], 2),
     ],
 )
-def test_filter_counts(protocol: str, ids: list[int], read_back: bool, count: int) -> None:
-    filters = telemetry_filters(protocol, ids, read_back)
+def test_filter_counts(protocol: str, ids: list[int], count: int) -> None:
+    filters = telemetry_filters(protocol, ids)
     assert len(filters) == count
     assert all(f["extended"] is True for f in filters)
-    assert telemetry_filters(protocol, [], False) == []
+    assert telemetry_filters(protocol, []) == []
 
 
 def fewest_blocks(values: frozenset[int], width: int) -> int:
@@ -300,7 +299,7 @@ def fewest_blocks(values: frozenset[int], width: int) -> int:
 @settings(max_examples=60, deadline=None)
 def test_filters_are_as_few_as_the_ids_allow(ids: frozenset[int]) -> None:
     # FT telemetry is 2 command blocks; the ESC IDs (all below 16 here) take their fewest.
-    assert len(telemetry_filters("ft", ids, False)) == 2 * fewest_blocks(ids, 4)
+    assert len(telemetry_filters("ft", ids)) == 2 * fewest_blocks(ids, 4)
 
 
 def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int, bool]]:
@@ -334,15 +333,13 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
 
 
 @pytest.mark.parametrize("protocol", ["ckesc", "ft"])
-@given(data=st.data(), read_back=st.booleans())
+@given(data=st.data())
 @settings(max_examples=80, deadline=None)
-def test_filters_pass_exactly_our_telemetry(
-    protocol: str, data: st.DataObject, read_back: bool
-) -> None:
+def test_filters_pass_exactly_our_telemetry(protocol: str, data: st.DataObject) -> None:
     top = 125 if protocol == "ckesc" else 255
     ids = data.draw(st.frozensets(st.integers(1, top), min_size=1, max_size=20), label="ids")
     frames = data.draw(st.lists(frame_ids(protocol, ids), min_size=50, max_size=50))
-    filters = telemetry_filters(protocol, ids, read_back)
+    filters = telemetry_filters(protocol, ids)
     virtual = open_bus(
         CanConfig(interface="virtual", channel=f"filters-{next(_channels)}"),
         500_000,
@@ -354,7 +351,7 @@ def test_filters_pass_exactly_our_telemetry(
         assert virtual.filters == filters and multicast.filters == filters
         for can_id, extended in frames:
             msg = can.Message(arbitration_id=can_id, is_extended_id=extended)
-            want = is_ours(protocol, ids, read_back, can_id, extended)
+            want = is_ours(protocol, ids, can_id, extended)
             assert virtual._matches_filters(msg) == want, (hex(can_id), extended)
             assert multicast._matches_filters(msg) == want, (hex(can_id), extended)
             assert kernel_matches(filters, can_id, extended) == want, (hex(can_id), extended)
@@ -364,43 +361,52 @@ def test_filters_pass_exactly_our_telemetry(
 
 
 def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[int]]:
-    """(every telemetry ID from ``ids``, every command ID the state reads back, other IDs)."""
+    """(every telemetry ID from ``ids``, every command ID to or from them, other IDs)."""
     if protocol == "ckesc":
         telemetry = [uavcan_v0.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
         commands = [uavcan_v0.message_id(0, t, 0) for t in CKESC_COMMANDS]
         others = [
-            uavcan_v0.message_id(31, ckesc.TYPE_MSG1, 9),  # not our node
-            uavcan_v0.message_id(16, ckesc.TYPE_GET_ESC_ID, ids[0]),  # an answer, not telemetry
-            uavcan_v0.service_id(16, ckesc.SERVICE_ESC_INFO, False, 0, ids[0]),  # a response
-            uavcan_v0.message_id(0, ckesc.TYPE_RAW_COMMAND_12B, 5),  # a command from another host
+            uavcan_v0.message_id(31, ckesc_records.TYPE_MSG1, 9),  # not our node
+            uavcan_v0.message_id(
+                16, ckesc_records.TYPE_GET_ESC_ID, ids[0]
+            ),  # an answer, not telemetry
+            uavcan_v0.service_id(
+                16, ckesc_records.SERVICE_ESC_INFO, False, 0, ids[0]
+            ),  # a response
+            uavcan_v0.message_id(
+                0, ckesc_records.TYPE_RAW_COMMAND_12B, 5
+            ),  # a command from another host
         ]
     else:
-        telemetry = [ft.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
-        commands = [ft.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
-        others = [ft.can_id(9, 0x0C), ft.can_id(ids[0], 0x0E), ft.can_id(ids[0], 0x06)]
+        telemetry = [ft_records.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
+        commands = [ft_records.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
+        others = [
+            ft_records.can_id(9, 0x0C),
+            ft_records.can_id(ids[0], 0x0E),
+            ft_records.can_id(ids[0], 0x06),
+        ]
     return telemetry, commands, others
 
 
 @pytest.mark.parametrize("protocol", ["ckesc", "ft"])
-@pytest.mark.parametrize("read_back", [False, True])
-def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
-    protocol: str, read_back: bool
-) -> None:
+def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(protocol: str) -> None:
     ids = [1, 2, 3, 4]
     telemetry, commands, others = every_id(protocol, ids)
     config = CanConfig(interface="virtual", channel=f"every-{next(_channels)}")
-    filters = telemetry_filters(protocol, ids, read_back)
+    filters = telemetry_filters(protocol, ids)
     receiver = open_bus(config, 500_000, receive="telemetry", filters=filters)
     sender = open_bus(config, 500_000)
     try:
         sent = telemetry + commands + others
         for can_id in sent:
             sender.send(can.Message(arbitration_id=can_id, data=bytes(8)))
-        sender.send(can.Message(arbitration_id=ft.can_id(1, 0x0C) & 0x7FF, is_extended_id=False))
+        sender.send(
+            can.Message(arbitration_id=ft_records.can_id(1, 0x0C) & 0x7FF, is_extended_id=False)
+        )
         got = []
         while (msg := receiver.recv(0.05)) is not None:
             got.append(msg.arbitration_id)
-        assert got == telemetry + (commands if read_back else [])
+        assert got == telemetry
     finally:
         receiver.shutdown()
         sender.shutdown()
@@ -409,20 +415,20 @@ def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
 def test_reader_filters_pass_everything_to_a_recording() -> None:
     assert reader_filters(registry.family("ft"), [1], recording=True) is None
     assert reader_filters(registry.family("ft"), [1], recording=False) == (
-        telemetry_filters("ft", [1], False)
+        telemetry_filters("ft", [1])
     )
 
 
 def test_ids_no_filter_can_name_and_misused_arguments_are_refused() -> None:
     with pytest.raises(ValueRangeError, match=r"CKESC node IDs \[0, 126\] are not in 1\.\.125"):
-        telemetry_filters("ckesc", [0, 1, 126], False)
+        telemetry_filters("ckesc", [0, 1, 126])
     with pytest.raises(ValueRangeError, match=r"FT ESC IDs \[256\] are not in 0\.\.255"):
-        telemetry_filters("ft", [255, 256], True)
+        telemetry_filters("ft", [255, 256])
     config = CanConfig(interface="virtual", channel=f"refused-{next(_channels)}")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
         open_bus(config, 500_000, receive="telemetry")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
-        open_bus(config, 500_000, filters=telemetry_filters("ft", [1], False))
+        open_bus(config, 500_000, filters=telemetry_filters("ft", [1]))
     bus = open_bus(config, 500_000)
     try:
         with pytest.raises(ValueError, match="no filters"):
@@ -481,7 +487,7 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
     port = free_port()
     config = udp_config(port)
     ids = [1, 2]
-    filters = telemetry_filters("ft", ids, False)
+    filters = telemetry_filters("ft", ids)
     bus = open_bus(config, 500_000, receive="telemetry", filters=filters)
     granted = enlarge_receive_buffer(bus, 4096)
     assert granted is not None and granted <= 16384  # a few datagrams' worth
@@ -494,12 +500,12 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
         lambda: None if held.is_set() else current[0], EscTable(ids), registry.family("ft")
     )
     telemetry = [
-        ft.encode(ft.FtFrame(esc, record))
+        ft_codec.encode(ft_records.FtFrame(esc, record))
         for esc in ids
         for record in (
-            ft.RealtimeData0(1.5, 2.25),
-            ft.RealtimeData1(21_000, 0.5),
-            ft.RealtimeData2(41.0, 55.5, 16.2),
+            ft_records.RealtimeData0(1.5, 2.25),
+            ft_records.RealtimeData1(21_000, 0.5),
+            ft_records.RealtimeData2(41.0, 55.5, 16.2),
         )
     ]
     count = 20_000
@@ -549,16 +555,6 @@ DUTIES = (0.2, 0.4, 0.6, 0.8)
 MEDIAN_AGE_MS = 50.0
 
 
-class _NoInput:
-    """An autopilot input sink for a link that never starts."""
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        pass
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        pass
-
-
 def bridge_config(port: int, protocol: str, ids: list[int], **telemetry: Any) -> BridgeConfig:
     raw: dict[str, Any] = {
         "output": {"protocol": protocol},
@@ -575,7 +571,7 @@ def bridge_config(port: int, protocol: str, ids: list[int], **telemetry: Any) ->
 
 
 def make_fanout(config: BridgeConfig, **kwargs: Any) -> Fanout:
-    link = MavlinkLink(config.mavlink, _NoInput())  # never started: what it is sent is dropped
+    link = MavlinkLink(config.mavlink)  # never started: what it is sent is dropped
     return Fanout(
         config,
         esc_table(config),
@@ -675,9 +671,7 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool) -> None:
     port = free_port()
     config = bridge_config(port, "ckesc", [1, 2], learn_ids=True)
     # The ESCs answer GET_ESC_ID with node IDs 9 and 12 for throttle channels 1 and 2.
-    sim = Simulator(
-        open_bus(config.can, 500_000), make_escs("ckesc", 2, [9, 12], channels=[1, 2]), own_bus=True
-    )
+    sim = Simulator(open_bus(config.can, 500_000), make_escs("ckesc", 2, [9, 12]), own_bus=True)
     recorded: list[can.Message] = []
     fanout = make_fanout(config, recorder=recorded.append if recording else None)
     sender = open_bus(config.can, 500_000)
@@ -690,9 +684,11 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool) -> None:
         assert reader is not None
         assert wait_until(lambda: reader.stats.telemetry > 10, 3.0)
         others = [
-            ckesc.encode_raw_12b(1, [100, 200], 0),  # the bridge's command, read back or not
-            ckesc.encode(  # MSG1 from a node that is not ours (the configured ID 1)
-                ckesc.CkescFrame(31, 1, None, 0, ckesc.Msg1(3000, 500, ckesc.Msg1Status(0)))
+            ckesc_codec.encode_raw_12b(1, [100, 200], 0),  # the bridge's command, read back or not
+            ckesc_codec.encode(  # MSG1 from a node that is not ours (the configured ID 1)
+                ckesc_codec.CkescFrame(
+                    31, 1, None, 0, ckesc_records.Msg1(3000, 500, ckesc_records.Msg1Status(0))
+                )
             ),
             can.Message(arbitration_id=0x1ABCDE05, data=bytes(8)),  # nobody's
         ]

@@ -114,6 +114,7 @@ def test_the_rpm_series_are_the_candump_logs(flight: Path) -> None:
     (files,) = find_recordings(flight)
     messages, meta = read_back(files.mcap_path)
     family = registry.family(meta["protocol"])
+    decoder = family.decoder()
     ids = [int(i) for i in meta["esc_ids"].split(",")]
     pole_pairs = int(meta["pole_pairs"])
     # From the candump log, through the production codecs: per motor, every telemetry frame's
@@ -123,10 +124,10 @@ def test_the_rpm_series_are_the_candump_logs(flight: Path) -> None:
         if isinstance(msg, BadLine):
             continue
         try:
-            frame = family.decode(msg, frozenset(ids)) if family.owns(msg.arbitration_id) else None
+            frame = decoder.decode(msg, frozenset(ids)) if family.owns(msg.arbitration_id) else None
         except FrameError:
             continue
-        telemetry = None if frame is None else family.telemetry(frame)
+        telemetry = None if frame is None else decoder.telemetry(frame)
         if telemetry is None or telemetry.node_id not in ids:
             continue
         rpm = telemetry.rpm
