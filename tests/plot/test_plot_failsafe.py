@@ -114,4 +114,6 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
     picture = record / f"{files.name}-plot" / "esc-2.png"
     assert mpl_image.imread(picture).shape == (1100, 1400, 4)
     page = (record / f"{files.name}-plot" / "index.html").read_text()
-    assert "over temperature (from" in page, re.findall(r"<tr>.*?</tr>", page, re.S)
+    # The page names every flag an ESC raised, a "generic" before the first command included.
+    failures = re.findall(r'<span class="bad">([^<]*) \(from [\d.]+ s\)</span>', page)
+    assert any("over temperature" in names.split(", ") for names in failures), failures
