@@ -1,74 +1,68 @@
-"""What an ESC family is to the rest of the bridge: one interface, one neutral telemetry record.
+"""What an ESC family is to the rest of the bridge: its wire and its driver, behind one interface.
 
-A family (CKESC, Flipsky FT, ...) lives in a folder of its own under ``bridge/escs/<name>/`` and
-is known to the rest of the bridge only through :class:`EscFamily` (found by name in
+A family (CKESC, Flipsky FT, DroneCAN, ...) lives in a folder of its own, ``bridge/escs/<name>/``,
+and the bridge's core knows it only through :class:`EscFamily` (found by name in
 :mod:`bridge.escs.registry`), the way python-can's interfaces sit behind ``BusABC`` and
-ArduPilot's ESC drivers behind ``AP_ESC_Telem_Backend``. Nothing outside ``bridge/escs/``
-names a family: the daemon, the output loop, the CAN reader, the ESC state, the publishers,
-the simulator runner and the CLI ask the family for what they need.
+ArduPilot's ESC drivers behind ``AP_ESC_Telem_Backend``. Nothing outside ``bridge/escs/`` names
+a family.
 
-What a family provides, by who needs it:
+What the core needs of a family, and nothing else:
 
-- the CAN reader and ``esc-bridge decode``: :meth:`EscFamily.owns` (is an ID in its space),
-  :meth:`EscFamily.decode` (pure: a frame to an :class:`EscFrame` record, or ``None``),
-  :meth:`EscFamily.node_of` (which ESC a malformed frame names), :meth:`EscFamily.reader_filters`
-  (the kernel filters passing its telemetry);
-- the ESC state (and through it MAVLink, Zenoh and the monitor):
-  :meth:`EscFamily.telemetry` maps a decoded frame into the neutral :class:`EscTelemetry`, and
-  :meth:`EscFamily.commands_seen` reads the bridge's own commands back as :class:`CommandSeen`;
-- the output loop: :meth:`EscFamily.driver`, an :class:`~bridge.escs.drivers.EscDriver` (command
-  fractions -1..1 to frames, safe frames, ticks per cycle);
-- the start-up checks: :attr:`EscFamily.keys` (its ``[escs]`` keys), the defaults that depend on
-  the family, :meth:`EscFamily.check_config`, :meth:`EscFamily.with_esc_count`, and
-  :meth:`EscFamily.bus_figures` (the worst-case bus load of its commands and telemetry);
-- the simulator and the demo: :meth:`EscFamily.simulators`, :meth:`EscFamily.demo_settings`;
-- the CLI: :meth:`EscFamily.add_cli_commands` (set-up commands under ``esc-bridge esc``, may add
-  none), :meth:`EscFamily.describe_command` and :meth:`EscFamily.describe_esc` (for ``esc
-  spin`` and the motor test), :meth:`EscFamily.learn_node_ids` (may learn none).
+- its ID space: :attr:`~EscFamily.node_ids` and :meth:`~EscFamily.owns` (is a CAN ID the
+  family's);
+- a reader per stream of frames: :meth:`~EscFamily.decoder` makes an :class:`EscDecoder`
+  (stateless for one-frame protocols, a reassembler for multi-frame transfers) that decodes a
+  frame into the family's record and maps that record into the neutral :class:`EscTelemetry`,
+  or the commands it carries into :class:`CommandSeen`;
+- the kernel filters that pass its telemetry: :meth:`~EscFamily.reader_filters`;
+- the driver: :meth:`~EscFamily.driver` makes an :class:`EscDriver` (command fractions to
+  frames, safe frames, and what it sends in words);
+- the worst-case bus load of its traffic: :meth:`~EscFamily.bus_figures`;
+- its configuration: its ``[escs]`` keys (:attr:`~EscFamily.keys`), the defaults of the common
+  keys it sets (:attr:`~EscFamily.default_rate_hz`, :attr:`~EscFamily.default_bitrate`), and
+  their check (:meth:`~EscFamily.check`).
 
-Where the interface is thin, and how the families live with it (not yet hooks of its own):
+A family is given its own keys and the few common values it needs (:class:`EscSetup`: the ESC
+IDs by mixer output; the command rate for its check), never the whole configuration: this
+module and every family import nothing above ``bridge/escs/`` (type-only imports included)
+but :mod:`bridge.errors`, :mod:`bridge.config_checks` (the key validators) and the simulated
+motor of :mod:`bridge.sim` for their simulators.
 
-- :meth:`EscFamily.decode` takes one frame and returns one record, as if a frame were a
-  message. DroneCAN's transfers span several frames, so its family keeps one stateful decoder
-  per thread (each thread reads one stream: the CAN reader, ``decode``, the plot) and returns a
-  ``TransferPart`` for each frame before a transfer's last. A per-stream ``decoder()`` (created
-  once per stream by each caller, stateless for CKESC and FT) would say so in the interface.
-- Frames a family must send on a clock of its own rather than per command: DroneCAN's own
-  NodeStatus, once a second, which its driver appends to a tick's frames by its own clock. A
-  periodic-frames hook beside :meth:`EscFamily.driver` would let the output loop schedule them.
-- The UAVCAN v0 framing CKESC and DroneCAN share is :mod:`bridge.escs.uavcan_v0`, beside this
-  module: no family imports another.
+Tools that only some commands need sit beside the family, not in the interface (as python-can's
+``can.logger`` and ``can.viewer`` sit beside ``BusABC``). Whoever needs one finds it by the
+family's package with :func:`bridge.escs.registry.tool`; a family without it has no module and
+no stub:
 
-A family module imports no part of the bridge outside ``bridge/escs/`` at import time except
-:mod:`bridge.errors` and, for its keys, :mod:`bridge.config`; its simulator, set-up client and
-CLI commands are imported only when asked for.
+- ``sim.py``: ``simulators(setup: EscSetup, motor_params: MotorParams | None) ->
+  list[SimEsc]``, the family's simulated ESCs for ``esc-bridge sim``, the demo and the tests
+  (``setup.ids`` checked by the caller against :attr:`~EscFamily.node_ids`); and, if the demo
+  needs other settings than the defaults for this family, ``DEMO_SETTINGS``: configuration
+  tables merged over the demo's own.
+- ``setup.py``: ``learn_node_ids(bus: can.BusABC, setup: EscSetup) -> dict[int, int]``, for
+  ``[telemetry] learn_ids``: the node ID of each mixer output (0-based) whose ESC answered.
+- ``cli.py``: ``add_commands(esc_commands, bus_flags: BusFlags)``, the family's set-up commands
+  under ``esc-bridge esc`` (:class:`bridge.escs.tools.BusFlags` is what the CLI hands them).
 
 Adding a family: a folder ``bridge/escs/<name>/`` (listed in ``pyproject.toml``'s packages)
-whose ``family.py`` has a class with every member of :class:`EscFamily` (``ckesc/`` and ``ft/``
-are the examples: ``driver.py``, ``telemetry.py``, ``bus.py``, ``keys.py``, ``sim.py``), and
-one line in :data:`bridge.escs.registry.FAMILIES`. Its ``[escs]`` keys (each named with the
-family's prefix, so no two families' keys clash) are validated with the others' and read back
-as ``config.escs.keys(name)``; ``[output] protocol``, every ``--protocol`` choice and
-``esc-bridge decode --protocol auto`` follow from the registry.
+whose ``family.py`` has a class with the members of :class:`EscFamily` (``ft/`` is the small
+example: ``records.py``, ``codec.py``, ``telemetry.py``, ``driver.py``, ``bus.py``, ``keys.py``,
+``sim.py``; ``dronecan/`` one with multi-frame transfers), and one line in
+:data:`bridge.escs.registry.FAMILIES`. Its ``[escs]`` keys (each named with the family's prefix,
+so no two families' keys clash) are validated for form with every family's; ``[output]
+protocol``, every ``--protocol`` choice and ``esc-bridge decode --protocol auto`` follow from the
+registry.
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import can
 
 if TYPE_CHECKING:
-    import argparse
-
     from can.typechecking import CanFilter
-
-    from bridge.config import BridgeConfig
-    from bridge.escs.drivers import EscDriver
-    from bridge.sim.base import SimEsc
-    from bridge.sim.motor import MotorParams
 
 # MAVLink ESC_FAILURE_FLAGS bits: what a family's status words map into.
 FAILURE_NONE = 0
@@ -92,6 +86,24 @@ def frame_bits(data_bytes: int) -> int:
     if not 0 <= data_bytes <= 8:
         raise ValueError(f"a classic CAN frame carries 0..8 data bytes, not {data_bytes}")
     return 67 + 8 * data_bytes + (54 + 8 * data_bytes - 1) // 4
+
+
+KeysT = TypeVar("KeysT")
+
+
+@dataclass(frozen=True)
+class EscSetup(Generic[KeysT]):
+    """What a family is given of the configuration: its own keys and the ESC IDs."""
+
+    ids: tuple[int, ...]
+    """The ESC ID on each mixer output, in output order (the family's node or ESC ID). Empty
+    while the mixer's size is not known (the check when the configuration is read)."""
+    keys: KeysT
+    """The family's ``[escs]`` keys (an instance of :attr:`EscFamily.keys`); its per-ESC lists
+    have one entry per ID once ``ids`` is filled."""
+    channels: tuple[int, ...] | None = None
+    """The throttle channel each output's ESC follows, for a family that addresses its ESCs by
+    channel (:attr:`CommandSeen.channel`); set by the family's :meth:`EscFamily.check`."""
 
 
 class EscFrame(Protocol):
@@ -165,8 +177,66 @@ class BusFigures:
     telemetry_bits_per_s: float
 
 
+class EscDecoder(Protocol):
+    """The family's reader of one stream of frames (the CAN reader, one capture, one plot):
+    frames to records, records to neutral telemetry. Pure: no I/O, clock or logging. A family
+    whose transfers span frames keeps the partial transfers here, so each stream has its own."""
+
+    def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
+        """One frame decoded; ``None``: not the family's (or a transfer's frame before its
+        last). ``esc_nodes`` (our ESCs' IDs, or None) lets a family whose IDs other protocols
+        share refuse foreign nodes.
+
+        Raises:
+            bridge.errors.FrameError: the frame is in the family's space but malformed.
+        """
+        ...
+
+    def node_of(self, msg: can.Message) -> int | None:
+        """The ESC a (possibly malformed) frame's ID names, or None if it names none."""
+        ...
+
+    def telemetry(self, frame: EscFrame) -> EscTelemetry | None:
+        """A decoded frame as neutral telemetry; ``None`` if it is no telemetry (commands,
+        service traffic). A telemetry frame whose content is not state (debug data) still maps
+        to a record, with nothing but ``node_id``: it keeps the ESC online."""
+        ...
+
+    def commands_seen(self, frame: EscFrame) -> Sequence[CommandSeen]:
+        """The commands a decoded command frame carries (none for other frames)."""
+        ...
+
+
+class EscDriver(Protocol):
+    """Turns one tick's command fractions into CAN frames, limited to the protocol's range,
+    and says what it sends. The output loop ticks ``ticks_per_cycle`` times per cycle: a family
+    that addresses every ESC in one tick has one tick per cycle, one that needs a frame per ESC
+    spreads them across the cycle."""
+
+    ticks_per_cycle: int
+    """Ticks to address every ESC once (1: every tick addresses every ESC)."""
+    kind: str
+    """What the driver sends, in a word or two for the start-up log line."""
+
+    def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
+        """Frames for ``tick`` commanding ``fractions`` (one per mixer output, -1..1)."""
+        ...
+
+    def safe_frames(self, tick: int) -> list[can.Message]:
+        """Frames for ``tick`` commanding the safe output (motors stopped)."""
+        ...
+
+    def describe_command(self, fraction: float) -> str:
+        """What ``fraction`` (0..1) of the full range means on the wire."""
+        ...
+
+    def describe_esc(self, index: int) -> str:
+        """The ESC on mixer output ``index`` (0-based), for the motor test's messages."""
+        ...
+
+
 class EscFamily(Protocol):
-    """One ESC family: everything the bridge needs from it. See the module docstring."""
+    """One ESC family: what the bridge's core needs of it. See the module docstring."""
 
     name: str
     """Its name in ``[output] protocol``, ``--protocol`` and the registry."""
@@ -180,31 +250,16 @@ class EscFamily(Protocol):
     """``[can] bitrate`` when not set."""
     keys: type
     """Its ``[escs]`` keys: a frozen dataclass whose fields are made with
-    :func:`bridge.config.key` (the key names carry the family's prefix, e.g. ``ft_mode``). The
-    validated instance is ``config.escs.keys(name)``; :meth:`with_esc_count` returns it
-    filled for the mixer's size."""
-    learns_node_ids: bool
-    """Whether :meth:`learn_node_ids` can ask the ESCs for their IDs (``[telemetry]
-    learn_ids``)."""
-
-    # -- frames ------------------------------------------------------------------------------
+    :func:`bridge.config_checks.key` (the key names carry the family's prefix, e.g.
+    ``ft_mode``; a per-ESC list says so with ``per_esc=True`` and is sized with ``[escs] ids``
+    by the configuration)."""
 
     def owns(self, arbitration_id: int) -> bool:
         """Whether a 29-bit CAN ID lies in the family's ID space (it may still not decode)."""
         ...
 
-    def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
-        """One frame decoded (pure: no I/O, clock or logging); ``None``: not the family's.
-        ``esc_nodes`` (our ESCs' IDs, or None) lets a family whose IDs other
-        protocols share refuse foreign nodes.
-
-        Raises:
-            bridge.errors.FrameError: the frame is in the family's space but malformed.
-        """
-        ...
-
-    def node_of(self, msg: can.Message) -> int | None:
-        """The ESC a (possibly malformed) frame's ID names, or None if it names none."""
+    def decoder(self) -> EscDecoder:
+        """A decoder for one stream of frames (each reader, capture or plot makes its own)."""
         ...
 
     def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
@@ -216,95 +271,23 @@ class EscFamily(Protocol):
         """
         ...
 
-    # -- telemetry ---------------------------------------------------------------------------
-
-    def telemetry(self, frame: EscFrame) -> EscTelemetry | None:
-        """A decoded frame as neutral telemetry; ``None`` if it is no telemetry (commands,
-        service traffic). A telemetry frame whose content is not state (debug data) still maps
-        to a record, with nothing but ``node_id``: it keeps the ESC online."""
-        ...
-
-    def commands_seen(self, frame: EscFrame) -> Sequence[CommandSeen]:
-        """The commands a decoded command frame carries (none for other frames)."""
-        ...
-
-    # -- output ------------------------------------------------------------------------------
-
-    def driver(self, config: BridgeConfig) -> EscDriver:
-        """The command driver for ``config`` (its ESC lists already filled in)."""
-        ...
-
-    def bus_figures(self, config: BridgeConfig, rate_hz: float) -> BusFigures:
-        """Worst-case traffic of ``config``'s ESCs with commands sent at ``rate_hz``."""
-        ...
-
-    def command_kind(self, config: BridgeConfig) -> str:
-        """What the driver sends, in a word or two for the start-up log line."""
-        ...
-
-    def describe_command(self, config: BridgeConfig, fraction: float) -> str:
-        """What ``fraction`` (0..1) of the full range means on the wire."""
-        ...
-
-    def describe_esc(self, config: BridgeConfig, index: int) -> str:
-        """The ESC on mixer output ``index`` (0-based), for the motor test's messages."""
-        ...
-
-    # -- configuration -----------------------------------------------------------------------
-
-    def check_config(self, config: BridgeConfig) -> None:
-        """Checks of the family's keys against the other sections once ``config`` is built.
-        Called for every family, selected or not (a check that only matters for the selected
-        family tests ``config.output.protocol == self.name``).
+    def check(self, setup: EscSetup[Any], rate_hz: int) -> EscSetup[Any]:
+        """Check the family's keys against the ESC IDs and the command rate ``rate_hz``, and
+        return the setup the family runs with (``setup``, with its ``channels`` where the
+        family addresses its ESCs by channel). Called for the selected family only: when the
+        configuration is read (``setup.ids`` as configured, maybe empty) and again once the
+        mixer has sized the ESC lists.
 
         Raises:
-            bridge.errors.ConfigError: naming the file, the section and key.
+            bridge.errors.ConfigError: naming the section and key (``[escs] ...``; the caller
+                puts the file in front).
         """
         ...
 
-    def with_esc_count(self, config: BridgeConfig, n_outputs: int) -> Any:
-        """The family's keys with their per-ESC lists filled for ``n_outputs`` (``[escs] ids``
-        already filled). Called for every family, selected or not, as :meth:`check_config`.
-
-        Raises:
-            bridge.errors.ConfigError: a list without one entry per output, or a value the
-                family cannot send to so many ESCs.
-        """
+    def driver(self, setup: EscSetup[Any]) -> EscDriver:
+        """The command driver for ``setup`` (checked, its ESC lists filled in)."""
         ...
 
-    def channels(self, config: BridgeConfig) -> Sequence[int] | None:
-        """The throttle channel of each motor for a family that addresses ESCs by channel
-        (:attr:`CommandSeen.channel`), else None."""
-        ...
-
-    def learn_node_ids(self, bus: can.BusABC, config: BridgeConfig) -> dict[int, int] | None:
-        """Ask the ESCs on ``bus`` for their IDs: ``{motor index: node ID}`` for each that
-        answered, or None if the family cannot ask.
-
-        Raises:
-            bridge.errors.LinkError: the answers are inconsistent.
-        """
-        ...
-
-    # -- simulation, demo, CLI ---------------------------------------------------------------
-
-    def simulators(
-        self,
-        ids: Sequence[int],
-        channels: Sequence[int] | None,
-        motor_params: MotorParams | None,
-    ) -> list[SimEsc]:
-        """Simulated ESCs with these IDs (checked by the caller against :attr:`node_ids`).
-
-        Raises:
-            ValueError: ``channels`` given to a family without them, or of the wrong length.
-        """
-        ...
-
-    def demo_settings(self, n_escs: int) -> dict[str, dict[str, Any]]:
-        """Configuration tables the demo adds for this family (merged over its own)."""
-        ...
-
-    def add_cli_commands(self, esc_commands: argparse._SubParsersAction[Any]) -> None:
-        """Add the family's set-up commands to the ``esc-bridge esc`` group (maybe none)."""
+    def bus_figures(self, setup: EscSetup[Any], rate_hz: float) -> BusFigures:
+        """Worst-case traffic of ``setup``'s ESCs with commands sent at ``rate_hz``."""
         ...

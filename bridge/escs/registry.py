@@ -1,15 +1,18 @@
-"""The ESC families by name, each imported only when asked for.
+"""The ESC families by name, each imported only when asked for, and their tools.
 
 Adding a family is one line here (its name and where its :class:`~bridge.escs.family.EscFamily`
 class is) plus its folder ``bridge/escs/<name>/`` (and the folder in ``pyproject.toml``'s
 packages). Everything else (``[output] protocol``, every ``--protocol`` choice, the config keys,
-``esc-bridge decode --protocol auto``) follows from this table.
+``esc-bridge decode --protocol auto``, the help texts' lists of families) follows from this
+table. A family's tools (its simulator, set-up client, set-up commands) are modules beside its
+``family.py``, found by :func:`tool`.
 """
 
 from __future__ import annotations
 
 import importlib
 from functools import cache
+from types import ModuleType
 from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
@@ -31,6 +34,15 @@ def names() -> tuple[str, ...]:
     return tuple(FAMILIES)
 
 
+def _entry(name: str) -> tuple[str, str]:
+    try:
+        module_name, _, class_name = FAMILIES[name].partition(":")
+    except KeyError:
+        expected = ", ".join(repr(n) for n in FAMILIES)
+        raise ValueError(f"unknown ESC protocol {name!r}; expected one of {expected}") from None
+    return module_name, class_name
+
+
 @cache
 def family(name: str) -> EscFamily:
     """The family called ``name``, its module imported now if it was not yet.
@@ -38,11 +50,7 @@ def family(name: str) -> EscFamily:
     Raises:
         ValueError: no family has that name.
     """
-    try:
-        module_name, _, class_name = FAMILIES[name].partition(":")
-    except KeyError:
-        expected = ", ".join(repr(n) for n in FAMILIES)
-        raise ValueError(f"unknown ESC protocol {name!r}; expected one of {expected}") from None
+    module_name, class_name = _entry(name)
     family_class = getattr(importlib.import_module(module_name), class_name)
     found: EscFamily = family_class()
     return found
@@ -63,3 +71,26 @@ def family_of(arbitration_id: int) -> EscFamily | None:
     """The first family (in :data:`FAMILIES` order) whose ID space holds ``arbitration_id``."""
     candidates = families_of(arbitration_id)
     return candidates[0] if candidates else None
+
+
+def tool(name: str, module: str) -> ModuleType | None:
+    """The family ``name``'s tool module ``module`` (``sim``, ``setup`` or ``cli``: see
+    :mod:`bridge.escs.family`), imported now; None if the family has none.
+
+    Raises:
+        ValueError: no family has that name.
+    """
+    package = _entry(name)[0].rpartition(".")[0]
+    full_name = f"{package}.{module}"
+    try:
+        return importlib.import_module(full_name)
+    except ModuleNotFoundError as exc:
+        if exc.name == full_name:
+            return None
+        raise
+
+
+def titles() -> str:
+    """Every family's title, for help texts: "CKESC, FT and DroneCAN"."""
+    shown = [family(name).title for name in FAMILIES]
+    return shown[0] if len(shown) == 1 else f"{', '.join(shown[:-1])} and {shown[-1]}"
