@@ -42,12 +42,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final, cast
 
 import can
 
 from bridge.errors import FrameError
+from bridge.escs.family import EscSetup
 from bridge.escs.vesc.codec import decode, encode
+from bridge.escs.vesc.keys import VescKeys
 from bridge.escs.vesc.records import (
     BROADCAST_ID,
     CONTROLLER_ID_MAX,
@@ -79,16 +81,18 @@ from bridge.escs.vesc.records import (
     VescStatus,
 )
 from bridge.sim.base import Faults
-from bridge.sim.motor import Motor
+from bridge.sim.motor import Motor, MotorParams
 
 __all__ = [
     "DEFAULT_STATUS_HZ",
     "DEFAULT_TIMEOUT_S",
+    "DEMO_SETTINGS",
     "OVER_CURRENT_A",
     "OVER_TEMPERATURE_C",
     "STATUS_1_TO_5",
     "SimVesc",
     "VescSimStats",
+    "simulators",
 ]
 
 log = logging.getLogger(__name__)
@@ -361,3 +365,25 @@ class SimVesc:
             Packet.STATUS_6: Status6(0.0, 0.0, 0.0, 0.0),
         }
         return [records[packet] for packet in _STATUS_ORDER if packet in self.status]
+
+
+DEMO_SETTINGS: Final[dict[str, dict[str, Any]]] = {"can": {"bitrate": 1_000_000}}
+"""The demo's octocopter at 200 Hz with STATUS 1-5 at 50 Hz needs about 510 kbit/s: a 1 Mbit/s
+bus keeps it under the bus-load ceiling."""
+
+
+def simulators(setup: EscSetup[Any], motor_params: MotorParams | None) -> list[SimVesc]:
+    """Simulated VESCs with ``setup``'s IDs, set up as docs/escs.md says: STATUS 1-5 at
+    ``vesc_status_hz`` (none at 0, as from the factory) and the ``vesc_timeout_ms`` timeout."""
+    keys = cast(VescKeys, setup.keys)
+    status = STATUS_1_TO_5 if keys.vesc_status_hz > 0 else frozenset()
+    return [
+        SimVesc(
+            controller_id,
+            motor=Motor(motor_params),
+            status=status,
+            status_hz=keys.vesc_status_hz or DEFAULT_STATUS_HZ,
+            timeout_s=keys.vesc_timeout_ms / 1000,
+        )
+        for controller_id in setup.ids
+    ]
