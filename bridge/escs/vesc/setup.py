@@ -39,6 +39,8 @@ STATUS_ON_HINT: Final = (
     "(Can Status Rate 1: 50 Hz)"
 )
 """What docs/escs.md asks of every VESC the bridge drives."""
+REPORTS_ON: Final = f"A VESC sends no status frames until told to: {STATUS_ON_HINT}."
+"""For the running bridge's warning about VESCs it never heard (bridge/daemon/absence.py)."""
 
 
 @dataclass(frozen=True)
