@@ -275,3 +275,18 @@ def test_bad_settings_are_refused(options: dict[str, object], match: str) -> Non
     controller_id = options.pop("controller_id", VESC)
     with pytest.raises(ValueError, match=match):
         SimVesc(controller_id, **options)  # type: ignore[arg-type]
+
+
+def test_simulators_are_set_up_as_the_configuration_says() -> None:
+    from bridge.escs.family import EscSetup
+    from bridge.escs.vesc.keys import VescKeys
+    from bridge.escs.vesc.sim import simulators
+
+    escs = simulators(EscSetup((1, 7), VescKeys(vesc_status_hz=25.0, vesc_timeout_ms=300)), PARAMS)
+    assert [esc.node_id for esc in escs] == [1, 7]
+    assert all(esc.status == STATUS_1_TO_5 and esc.status_hz == 25.0 for esc in escs)
+    assert all(esc.timeout_s == 0.3 and esc.motor.params == PARAMS for esc in escs)
+    assert escs[0].motor is not escs[1].motor
+    # vesc_status_hz 0: VESCs as from the factory, no status frames.
+    (quiet,) = simulators(EscSetup((3,), VescKeys(vesc_status_hz=0.0)), None)
+    assert quiet.status == frozenset()
