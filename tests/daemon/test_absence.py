@@ -123,8 +123,9 @@ def test_a_family_whose_reports_are_off_from_the_factory_says_how_to_turn_them_o
     assert said.endswith(
         "1, 3, 4 never heard: is each such ESC powered and wired, its ID the one in [escs] ids, "
         "its reports on? A VESC sends no status frames until told to: turn them on in VESC "
-        "Tool: App Settings > General > Can Messages Rate 1: Status 1 to 5 (Can Status Rate 1: "
-        "50 Hz). (docs/troubleshooting.md)"
+        "Tool: App Settings > General > Can Messages Rate 1: Status 1 to 5, Can Status Rate 1: "
+        "50 Hz (firmware 5.x: Can Status Message Mode CAN_STATUS_1_2_3_4_5). "
+        "(docs/troubleshooting.md)"
     )
     # Families without such a tool say nothing more (CKESC above, FT here).
     ft = Watched({"output": {"protocol": "ft"}})

@@ -35,8 +35,8 @@ DEFAULT_LISTEN_S: Final = 0.5
 sends at least two sets of status frames at the slowest default rate (Can Status Rate 2, 5 Hz)."""
 SEND_TIMEOUT_S: Final = 0.1
 STATUS_ON_HINT: Final = (
-    "turn them on in VESC Tool: App Settings > General > Can Messages Rate 1: Status 1 to 5 "
-    "(Can Status Rate 1: 50 Hz)"
+    "turn them on in VESC Tool: App Settings > General > Can Messages Rate 1: Status 1 to 5, "
+    "Can Status Rate 1: 50 Hz (firmware 5.x: Can Status Message Mode CAN_STATUS_1_2_3_4_5)"
 )
 """What docs/escs.md asks of every VESC the bridge drives."""
 REPORTS_ON: Final = f"A VESC sends no status frames until told to: {STATUS_ON_HINT}."
