@@ -7,7 +7,9 @@ refused, never wrapped or clipped (docs/protocols.md §6.3).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import struct
 from collections.abc import Callable
 from typing import Final, NamedTuple, TypeAlias
 
@@ -29,22 +31,16 @@ from bridge.escs.vesc.records import (
     ENERGY_SCALE,
     I16_MAX,
     I16_MIN,
-    I16X4,
-    I32,
-    I32_I16X2,
     I32_MAX,
     I32_MIN,
-    I32X2,
     NOTIFY_BOOT_MAX_DLC,
     PID_POSITION_SCALE,
     PING_DLC,
     PONG_DLCS,
     RPM_SCALE,
     STATUS_CURRENT_SCALE,
-    STATUS_DLC,
     STATUS_DUTY_SCALE,
     TEMP_SCALE,
-    U8X2,
     VESC_ID_MAX,
     VOLTAGE_SCALE,
     HwType,
@@ -65,8 +61,16 @@ from bridge.escs.vesc.records import (
     Status6,
     VescCommand,
     VescFrame,
+    VescStatus,
     can_id,
 )
+
+# Big-endian wire layouts: i32 ``i``, i16 ``h``, u8 ``B``.
+_I32: Final = struct.Struct(">i")
+_I32X2: Final = struct.Struct(">ii")
+_I32_I16X2: Final = struct.Struct(">ihh")
+_I16X4: Final = struct.Struct(">hhhh")
+_U8X2: Final = struct.Struct(">BB")
 
 # ---------------------------------------------------------------------------------------------
 # Commands: the hot path
@@ -155,7 +159,7 @@ def encode_command(controller_id: int, packet: Packet, value: float) -> can.Mess
     if not I32_MIN <= raw <= I32_MAX:
         raise _command_error(packet, value)
     return can.Message(
-        arbitration_id=packet << 8 | controller_id, data=I32.pack(raw), is_extended_id=True
+        arbitration_id=packet << 8 | controller_id, data=_I32.pack(raw), is_extended_id=True
     )
 
 
@@ -163,24 +167,41 @@ def encode_command(controller_id: int, packet: Packet, value: float) -> can.Mess
 # Everything else (the simulator's status frames, PING and PONG)
 
 
-def _to_int(name: str, value: float, scale: int, lowest: int, highest: int, kind: str) -> int:
-    """Scale and round a value, refusing anything that does not fit ``kind``."""
+class _StatusLayout(NamedTuple):
+    """A status frame: its record, its wire fields (i32 ``i``, i16 ``h``, big-endian) and the
+    scale of each record field, in order. Wire fields past the record's are reserved: sent as
+    0, ignored when read."""
+
+    record: type[VescStatus]
+    wire: struct.Struct
+    scales: tuple[int, ...]
+
+
+_STATUS_LAYOUTS: Final[dict[Packet, _StatusLayout]] = {
+    Packet.STATUS: _StatusLayout(Status, _I32_I16X2, (1, STATUS_CURRENT_SCALE, STATUS_DUTY_SCALE)),
+    Packet.STATUS_2: _StatusLayout(Status2, _I32X2, (ENERGY_SCALE, ENERGY_SCALE)),
+    Packet.STATUS_3: _StatusLayout(Status3, _I32X2, (ENERGY_SCALE, ENERGY_SCALE)),
+    Packet.STATUS_4: _StatusLayout(
+        Status4, _I16X4, (TEMP_SCALE, TEMP_SCALE, STATUS_CURRENT_SCALE, PID_POSITION_SCALE)
+    ),
+    Packet.STATUS_5: _StatusLayout(Status5, _I32_I16X2, (1, VOLTAGE_SCALE)),
+    Packet.STATUS_6: _StatusLayout(Status6, _I16X4, (ADC_SCALE,) * 4),
+}
+_STATUS_PACKETS: Final = {layout.record: packet for packet, layout in _STATUS_LAYOUTS.items()}
+_BOUNDS: Final = {"i": (I32_MIN, I32_MAX, "i32"), "h": (I16_MIN, I16_MAX, "i16")}
+
+
+def _to_int(name: str, value: float, scale: int, kind: str) -> int:
+    """Scale and round a value, refusing anything that does not fit ``kind`` (``i`` or ``h``)."""
+    lowest, highest, kind_name = _BOUNDS[kind]
     if math.isfinite(value):  # round() raises on NaN and infinities
         raw = round(value * scale)
         if lowest <= raw <= highest:
             return raw
     raise ValueRangeError(
-        f"VESC {name}={value!r} does not fit {kind} at scale x{scale}: allowed range "
+        f"VESC {name}={value!r} does not fit {kind_name} at scale x{scale}: allowed range "
         f"{_scaled_range(lowest, highest, scale, '')}"
     )
-
-
-def _i16(name: str, value: float, scale: int) -> int:
-    return _to_int(name, value, scale, I16_MIN, I16_MAX, "i16")
-
-
-def _i32(name: str, value: float, scale: int) -> int:
-    return _to_int(name, value, scale, I32_MIN, I32_MAX, "i32")
 
 
 def _byte(name: str, value: int) -> int:
@@ -189,49 +210,23 @@ def _byte(name: str, value: int) -> int:
     return value
 
 
-def _payload(frame: VescFrame) -> tuple[Packet, bytes]:
-    message = frame.message
+def _status_payload(status: VescStatus) -> tuple[Packet, bytes]:
+    packet = _STATUS_PACKETS[type(status)]
+    record, wire, scales = _STATUS_LAYOUTS[packet]
+    kinds = wire.format.lstrip(">")
+    raw = [
+        _to_int(field.name, getattr(status, field.name), scale, kind)
+        for field, scale, kind in zip(dataclasses.fields(record), scales, kinds, strict=False)
+    ]
+    return packet, wire.pack(*raw, *[0] * (len(kinds) - len(raw)))
+
+
+def _payload(message: Ping | Pong | NotifyBoot) -> tuple[Packet, bytes]:
     match message:
-        case Status():
-            return Packet.STATUS, I32_I16X2.pack(
-                _i32("erpm", message.erpm, 1),
-                _i16("motor_current_a", message.motor_current_a, STATUS_CURRENT_SCALE),
-                _i16("duty", message.duty, STATUS_DUTY_SCALE),
-            )
-        case Status2():
-            return Packet.STATUS_2, I32X2.pack(
-                _i32("used_ah", message.used_ah, ENERGY_SCALE),
-                _i32("charged_ah", message.charged_ah, ENERGY_SCALE),
-            )
-        case Status3():
-            return Packet.STATUS_3, I32X2.pack(
-                _i32("used_wh", message.used_wh, ENERGY_SCALE),
-                _i32("charged_wh", message.charged_wh, ENERGY_SCALE),
-            )
-        case Status4():
-            return Packet.STATUS_4, I16X4.pack(
-                _i16("fet_temp_c", message.fet_temp_c, TEMP_SCALE),
-                _i16("motor_temp_c", message.motor_temp_c, TEMP_SCALE),
-                _i16("input_current_a", message.input_current_a, STATUS_CURRENT_SCALE),
-                _i16("pid_position_deg", message.pid_position_deg, PID_POSITION_SCALE),
-            )
-        case Status5():
-            return Packet.STATUS_5, I32_I16X2.pack(
-                _i32("tachometer", message.tachometer, 1),
-                _i16("input_voltage_v", message.input_voltage_v, VOLTAGE_SCALE),
-                0,  # reserved
-            )
-        case Status6():
-            return Packet.STATUS_6, I16X4.pack(
-                _i16("adc1_v", message.adc1_v, ADC_SCALE),
-                _i16("adc2_v", message.adc2_v, ADC_SCALE),
-                _i16("adc3_v", message.adc3_v, ADC_SCALE),
-                _i16("ppm", message.ppm, ADC_SCALE),
-            )
         case Ping():
             return Packet.PING, bytes((_byte("sender_id", message.sender_id),))
         case Pong():
-            return Packet.PONG, U8X2.pack(
+            return Packet.PONG, _U8X2.pack(
                 _byte("controller_id", message.controller_id), _byte("hw_type", message.hw_type)
             )
         case NotifyBoot():
@@ -242,8 +237,6 @@ def _payload(frame: VescFrame) -> tuple[Packet, bytes]:
                     f"{NOTIFY_BOOT_MAX_DLC} ASCII characters"
                 )
             return Packet.NOTIFY_BOOT, name.encode("ascii")
-        case SetDuty() | SetCurrent() | SetCurrentBrake() | SetRpm() | SetCurrentRel():
-            raise AssertionError("commands are encoded by encode_command")
         case _:
             assert_never(message)
 
@@ -265,12 +258,17 @@ def encode(frame: VescFrame) -> can.Message:
             pass
         case SetRpm(erpm=value):
             pass
+        case Status() | Status2() | Status3() | Status4() | Status5() | Status6():
+            return _message(frame.controller_id, *_status_payload(message))
+        case Ping() | Pong() | NotifyBoot():
+            return _message(frame.controller_id, *_payload(message))
         case _:
-            packet, data = _payload(frame)
-            return can.Message(
-                arbitration_id=can_id(frame.controller_id, packet), data=data, is_extended_id=True
-            )
+            assert_never(message)
     return encode_command(frame.controller_id, COMMAND_PACKETS[type(message)], value)
+
+
+def _message(controller_id: int, packet: Packet, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=can_id(controller_id, packet), data=data, is_extended_id=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -300,64 +298,24 @@ def _command_decoder(packet: Packet, make: Callable[[int], VescCommand]) -> _Dec
     def decode_command(controller_id: int, data: bytearray) -> VescFrame:
         if len(data) != COMMAND_DLC:
             raise _dlc_error(packet, controller_id, data, expected)
-        return VescFrame(controller_id, make(I32.unpack(data)[0]))
+        return VescFrame(controller_id, make(_I32.unpack(data)[0]))
 
     return decode_command
 
 
-def _decode_status(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS, controller_id, data, STATUS_DLC)
-    erpm, current, duty = I32_I16X2.unpack(data)
-    return VescFrame(
-        controller_id, Status(erpm, current / STATUS_CURRENT_SCALE, duty / STATUS_DUTY_SCALE)
-    )
+def _status_decoder(packet: Packet, layout: _StatusLayout) -> _Decoder:
+    record, wire, scales = layout
+    size = wire.size
 
+    def decode_status(controller_id: int, data: bytearray) -> VescFrame:
+        if len(data) != size:
+            raise _dlc_error(packet, controller_id, data, size)
+        raw = wire.unpack(data)
+        # zip() stops at the record's last field: the reserved ones are dropped.
+        values = [r if scale == 1 else r / scale for r, scale in zip(raw, scales, strict=False)]
+        return VescFrame(controller_id, record(*values))
 
-def _decode_status_2(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS_2, controller_id, data, STATUS_DLC)
-    used, charged = I32X2.unpack(data)
-    return VescFrame(controller_id, Status2(used / ENERGY_SCALE, charged / ENERGY_SCALE))
-
-
-def _decode_status_3(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS_3, controller_id, data, STATUS_DLC)
-    used, charged = I32X2.unpack(data)
-    return VescFrame(controller_id, Status3(used / ENERGY_SCALE, charged / ENERGY_SCALE))
-
-
-def _decode_status_4(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS_4, controller_id, data, STATUS_DLC)
-    fet, motor, current_in, position = I16X4.unpack(data)
-    return VescFrame(
-        controller_id,
-        Status4(
-            fet / TEMP_SCALE,
-            motor / TEMP_SCALE,
-            current_in / STATUS_CURRENT_SCALE,
-            position / PID_POSITION_SCALE,
-        ),
-    )
-
-
-def _decode_status_5(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS_5, controller_id, data, STATUS_DLC)
-    tachometer, voltage, _reserved = I32_I16X2.unpack(data)
-    return VescFrame(controller_id, Status5(tachometer, voltage / VOLTAGE_SCALE))
-
-
-def _decode_status_6(controller_id: int, data: bytearray) -> VescFrame:
-    if len(data) != STATUS_DLC:
-        raise _dlc_error(Packet.STATUS_6, controller_id, data, STATUS_DLC)
-    adc1, adc2, adc3, ppm = I16X4.unpack(data)
-    return VescFrame(
-        controller_id,
-        Status6(adc1 / ADC_SCALE, adc2 / ADC_SCALE, adc3 / ADC_SCALE, ppm / ADC_SCALE),
-    )
+    return decode_status
 
 
 def _decode_ping(controller_id: int, data: bytearray) -> VescFrame:
@@ -392,12 +350,7 @@ _DECODERS: Final[dict[int, _Decoder]] = {
     Packet.SET_CURRENT_REL: _command_decoder(
         Packet.SET_CURRENT_REL, lambda raw: SetCurrentRel(raw / CURRENT_REL_SCALE)
     ),
-    Packet.STATUS: _decode_status,
-    Packet.STATUS_2: _decode_status_2,
-    Packet.STATUS_3: _decode_status_3,
-    Packet.STATUS_4: _decode_status_4,
-    Packet.STATUS_5: _decode_status_5,
-    Packet.STATUS_6: _decode_status_6,
+    **{packet: _status_decoder(packet, layout) for packet, layout in _STATUS_LAYOUTS.items()},
     Packet.PING: _decode_ping,
     Packet.PONG: _decode_pong,
     Packet.NOTIFY_BOOT: _decode_notify_boot,

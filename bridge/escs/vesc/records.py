@@ -7,7 +7,6 @@ decoding stays cheap and a capture with odd values can still be shown.
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Final, TypeAlias
@@ -58,12 +57,6 @@ PONG_DLCS: Final = (1, 2)
 """A PONG carries the answering VESC's ID and its hardware type; firmware reads one without the
 type as a VESC."""
 NOTIFY_BOOT_MAX_DLC: Final = 8
-
-I32: Final = struct.Struct(">i")
-I32X2: Final = struct.Struct(">ii")
-I32_I16X2: Final = struct.Struct(">ihh")
-I16X4: Final = struct.Struct(">hhhh")
-U8X2: Final = struct.Struct(">BB")
 
 # ---------------------------------------------------------------------------------------------
 # Enumerations
