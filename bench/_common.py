@@ -22,7 +22,11 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from bridge.sim.load import stat_fields
+# The load generators (loadgen/, beside bench/) are test and bench support, not installed: a
+# bench script run as `python bench/NAME.py` finds them through this, its first import.
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from loadgen.load import stat_fields
 
 GROUP = "239.74.163.2"
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")

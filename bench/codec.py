@@ -22,8 +22,12 @@ from typing import Any
 import can
 from _stats import percentile
 
-from bridge.escs import ckesc, ft, uavcan_v0
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import wire
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 
 BUS_SATURATION_FRAMES_PER_S = 6_250
 TARGET_FRAMES_PER_S = 200_000
@@ -43,7 +47,7 @@ def _ckesc_encode_12b(frames: int) -> Callable[[], int]:
     def run() -> int:
         tid = 0
         for group, throttles in groups:
-            ckesc.encode_raw_12b(group, throttles, tid)
+            ckesc_codec.encode_raw_12b(group, throttles, tid)
             tid = (tid + 1) & 31
         return len(groups)
 
@@ -55,7 +59,7 @@ def _ckesc_encode_14b(frames: int) -> Callable[[], int]:
 
     def run() -> int:
         for i, throttles in enumerate(commands):
-            ckesc.encode_raw_14b(throttles, i & 31)
+            ckesc_codec.encode_raw_14b(throttles, i & 31)
         return len(commands)
 
     return run
@@ -66,19 +70,19 @@ def _ckesc_encode_10b(frames: int) -> Callable[[], int]:
 
     def run() -> int:
         for throttles in commands:
-            ckesc.encode_raw_10b(throttles)
+            ckesc_codec.encode_raw_10b(throttles)
         return len(commands)
 
     return run
 
 
-def _ft_encode(command: ft.Command, scale: float) -> Callable[[int], Callable[[], int]]:
+def _ft_encode(command: ft_records.Command, scale: float) -> Callable[[int], Callable[[], int]]:
     def make(frames: int) -> Callable[[], int]:
         values = [(i % 1000) / 1000 * scale for i in range(frames)]
 
         def run() -> int:
             for i, value in enumerate(values):
-                ft.encode_command(1 + i % 8, command, value)
+                ft_codec.encode_command(1 + i % 8, command, value)
             return len(values)
 
         return run
@@ -129,31 +133,36 @@ def _dronecan_encode_with_package(frames: int) -> Callable[[], int]:
 
 
 def _ckesc_telemetry(frames: int) -> list[can.Message]:
-    records: list[ckesc.CkescMessage] = [
-        ckesc.Msg1(speed_rpm=12_000, throttle=1_500, status=ckesc.Msg1Status.RUNNING),
-        ckesc.Msg2(voltage_v=25.2, current_a=12.34, mos_temp_c=45),
-        ckesc.Msg3(mos_temp_c=45, capacitor_temp_c=40, motor_temp_c=60, mcu_temp_c=50),
+    messages: list[ckesc_records.CkescMessage] = [
+        ckesc_records.Msg1(
+            speed_rpm=12_000, throttle=1_500, status=ckesc_records.Msg1Status.RUNNING
+        ),
+        ckesc_records.Msg2(voltage_v=25.2, current_a=12.34, mos_temp_c=45),
+        ckesc_records.Msg3(mos_temp_c=45, capacitor_temp_c=40, motor_temp_c=60, mcu_temp_c=50),
     ]
     out = []
     for i in range(frames):
-        frame = ckesc.CkescFrame(
+        frame = ckesc_codec.CkescFrame(
             priority=uavcan_v0.PRIORITY_LOWEST,
             source_node=1 + i % 20,
             destination_node=None,
             transfer_id=i & 31,
-            message=records[i % 3],
+            message=messages[i % 3],
         )
-        out.append(ckesc.encode(frame))
+        out.append(ckesc_codec.encode(frame))
     return out
 
 
 def _ft_telemetry(frames: int) -> list[can.Message]:
-    records: list[ft.FtMessage] = [
-        ft.RealtimeData0(motor_current_a=12.5, battery_current_a=10.25),
-        ft.RealtimeData1(erpm=84_000, duty=0.55),
-        ft.RealtimeData2(mosfet_temp_c=45.5, motor_temp_c=60.25, battery_voltage_v=25.2),
+    messages: list[ft_records.FtMessage] = [
+        ft_records.RealtimeData0(motor_current_a=12.5, battery_current_a=10.25),
+        ft_records.RealtimeData1(erpm=84_000, duty=0.55),
+        ft_records.RealtimeData2(mosfet_temp_c=45.5, motor_temp_c=60.25, battery_voltage_v=25.2),
     ]
-    return [ft.encode(ft.FtFrame(esc_id=1 + i % 20, message=records[i % 3])) for i in range(frames)]
+    return [
+        ft_codec.encode(ft_records.FtFrame(esc_id=1 + i % 20, message=messages[i % 3]))
+        for i in range(frames)
+    ]
 
 
 def _decoder(
@@ -180,10 +189,12 @@ WORKLOADS = [
     Workload(
         "ft encode SET_CURRENT_GEAR_CRC16",
         TARGET_FRAMES_PER_S,
-        _ft_encode(ft.Command.SET_CURRENT_GEAR_CRC16, 50.0),
+        _ft_encode(ft_records.Command.SET_CURRENT_GEAR_CRC16, 50.0),
     ),
     Workload(
-        "ft encode SET_DUTY_GEAR", TARGET_FRAMES_PER_S, _ft_encode(ft.Command.SET_DUTY_GEAR, 1.0)
+        "ft encode SET_DUTY_GEAR",
+        TARGET_FRAMES_PER_S,
+        _ft_encode(ft_records.Command.SET_DUTY_GEAR, 1.0),
     ),
     Workload(
         f"dronecan encode RawCommand x{DRONECAN_ESCS}",
@@ -194,10 +205,12 @@ WORKLOADS = [
     Workload(
         "ckesc decode MSG1/2/3",
         TARGET_FRAMES_PER_S,
-        _decoder(_ckesc_telemetry, lambda m: ckesc.decode(m, ESC_NODES)),
+        _decoder(_ckesc_telemetry, lambda m: ckesc_codec.decode(m, ESC_NODES)),
     ),
     Workload(
-        "ft decode REALTIME_DATA_0/1/2", TARGET_FRAMES_PER_S, _decoder(_ft_telemetry, ft.decode)
+        "ft decode REALTIME_DATA_0/1/2",
+        TARGET_FRAMES_PER_S,
+        _decoder(_ft_telemetry, ft_codec.decode),
     ),
 ]
 

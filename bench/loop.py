@@ -42,7 +42,8 @@ import can
 from _common import GROUP, bridge_command, children, cpu_seconds, free_port
 from _stats import percentile
 
-from bridge.escs import ckesc, uavcan_v0
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec, records
 
 INPUT_RATE_HZ = 400
 TELEMETRY_HZ = (50, 10, 2)  # MSG1, MSG2, MSG3 per ESC
@@ -96,15 +97,15 @@ def telemetry_worker(port: int, n_escs: int, seconds: float) -> None:
     """CKESC telemetry from every ESC at its factory rates, spread over time."""
     bus = _bus(port)
     frames: list[tuple[float, can.Message]] = []  # (period s, frame) for every periodic frame
-    messages: tuple[ckesc.CkescMessage, ...] = (
-        ckesc.Msg1(speed_rpm=5000, throttle=1000, status=ckesc.Msg1Status.RUNNING),
-        ckesc.Msg2(voltage_v=24.0, current_a=5.0, mos_temp_c=40),
-        ckesc.Msg3(mos_temp_c=40, capacitor_temp_c=35, motor_temp_c=50, mcu_temp_c=45),
+    messages: tuple[records.CkescMessage, ...] = (
+        records.Msg1(speed_rpm=5000, throttle=1000, status=records.Msg1Status.RUNNING),
+        records.Msg2(voltage_v=24.0, current_a=5.0, mos_temp_c=40),
+        records.Msg3(mos_temp_c=40, capacitor_temp_c=35, motor_temp_c=50, mcu_temp_c=45),
     )
     for node in range(1, n_escs + 1):
         for hz, message in zip(TELEMETRY_HZ, messages, strict=True):
-            frame = ckesc.CkescFrame(uavcan_v0.PRIORITY_LOWEST, node, None, 0, message)
-            frames.append((1.0 / hz, ckesc.encode(frame)))
+            frame = codec.CkescFrame(uavcan_v0.PRIORITY_LOWEST, node, None, 0, message)
+            frames.append((1.0 / hz, codec.encode(frame)))
     start = time.monotonic()
     due = [start + i * 0.0003 for i in range(len(frames))]
     while time.monotonic() - start < seconds:
@@ -137,7 +138,7 @@ def baseline_worker(
                     pwm = getattr(msg, f"servo{i + 1}_raw")
                     throttles[first + i] = min(max(2 * (pwm - 1000), 0), 2000)
         for group in groups:
-            bus.send(ckesc.encode_raw_12b(group, throttles[4 * group - 4 : 4 * group], tid))
+            bus.send(codec.encode_raw_12b(group, throttles[4 * group - 4 : 4 * group], tid))
             tid = (tid + 1) & 31
         time.sleep(period)
     bus.shutdown()

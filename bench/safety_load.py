@@ -84,9 +84,13 @@ from _stats import percentile
 from can.interfaces.udp_multicast.utils import unpack_message
 
 from bridge.errors import BridgeError, CodecError
-from bridge.escs import ckesc, ft, uavcan_v0
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.mavlink import load_dialect
-from bridge.sim.load import PRESETS, LoadReport, preset, stat_fields
+from loadgen.load import PRESETS, LoadReport, preset, stat_fields
 
 OUTPUT_RATE_HZ = {"ckesc": 400, "ft": 100}  # per stream: CKESC group 1, each FT ESC
 MOTORS = 4
@@ -169,7 +173,7 @@ class Command:
 
 
 def _ft_zero(message: object) -> bool:
-    if isinstance(message, ft.SetCurrentBrake | ft.SetCurrentBrakePercent):
+    if isinstance(message, ft_records.SetCurrentBrake | ft_records.SetCurrentBrakePercent):
         return True
     for name in ("current_a", "duty", "fraction", "erpm"):
         if hasattr(message, name):
@@ -182,16 +186,16 @@ def _command(protocol: str, data: bytes, stamp: float) -> Command | None:
     try:
         msg = unpack_message(data)
         if protocol == "ckesc":
-            frame = ckesc.decode(msg)
-            if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+            frame = ckesc_codec.decode(msg)
+            if frame is None or not isinstance(frame.message, ckesc_records.RawCommand12b):
                 return None
             throttles = frame.message.throttles
             tid = -1 if frame.transfer_id is None else frame.transfer_id
             return Command(stamp, frame.message.group, tid, not any(throttles))
-        ft_frame = ft.decode(msg)
+        ft_frame = ft_codec.decode(msg)
     except (CodecError, ValueError, TypeError):
         return None
-    if ft_frame is None or isinstance(ft_frame.message, ft.FtTelemetry):
+    if ft_frame is None or isinstance(ft_frame.message, ft_records.FtTelemetry):
         return None
     return Command(stamp, ft_frame.esc_id, -1, _ft_zero(ft_frame.message))
 

@@ -73,7 +73,7 @@ from _common import (
 from _stats import percentile
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.mavlink import load_dialect
 
 OUTPUT_RATE_HZ = 400
@@ -132,21 +132,21 @@ def _spawned_children(pid: int) -> list[int]:
 # -- the ESC process ------------------------------------------------------------------------
 
 
-def _telemetry_packet(node: int, message: ckesc.CkescMessage, transfer_id: int) -> bytes:
+def _telemetry_packet(node: int, message: records.CkescMessage, transfer_id: int) -> bytes:
     """A real CKESC frame, as python-can's udp_multicast puts it on the wire."""
-    frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, transfer_id, message)
-    packet: bytes = pack_message(ckesc.encode(frame))
+    frame = codec.CkescFrame(codec.default_priority(message), node, None, transfer_id, message)
+    packet: bytes = pack_message(codec.encode(frame))
     return packet
 
 
-def _message(kind: str, rpm: int) -> ckesc.CkescMessage:
+def _message(kind: str, rpm: int) -> records.CkescMessage:
     if kind == "msg1":
-        return ckesc.Msg1(speed_rpm=rpm, throttle=1000, status=ckesc.Msg1Status.RUNNING)
+        return records.Msg1(speed_rpm=rpm, throttle=1000, status=records.Msg1Status.RUNNING)
     if kind == "msg2":
-        return ckesc.Msg2(voltage_v=24.0, current_a=5.0, mos_temp_c=40)
+        return records.Msg2(voltage_v=24.0, current_a=5.0, mos_temp_c=40)
     if kind == "msg3":
-        return ckesc.Msg3(mos_temp_c=40, capacitor_temp_c=35, motor_temp_c=50, mcu_temp_c=45)
-    return ckesc.MsgExp1(speed_rpm=rpm, voltage_v=24.0, current_a=5.0)
+        return records.Msg3(mos_temp_c=40, capacitor_temp_c=35, motor_temp_c=50, mcu_temp_c=45)
+    return records.MsgExp1(speed_rpm=rpm, voltage_v=24.0, current_a=5.0)
 
 
 @dataclass
@@ -476,10 +476,10 @@ def run_case(
                         run.observed_telemetry += 1
                         continue
                     msg = unpack_message(data)
-                    frame = ckesc.decode(msg)
+                    frame = codec.decode(msg)
                     if (
                         frame is not None
-                        and isinstance(frame.message, ckesc.RawCommand12b)
+                        and isinstance(frame.message, records.RawCommand12b)
                         and frame.message.group == 1
                         and window_start <= stamp <= window_end
                     ):

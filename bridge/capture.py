@@ -28,7 +28,7 @@ from can.io.generic import MessageReader
 
 from bridge.errors import ConfigError, FrameError
 from bridge.escs import registry
-from bridge.escs.family import EscFamily, EscFrame
+from bridge.escs.family import EscDecoder, EscFamily, EscFrame
 
 # Text formats python-can reads, with their fixed header length in lines (None: the header
 # runs until the first frame); the rest are binary.
@@ -290,6 +290,7 @@ def decode_capture(
         ValueError: ``protocol`` names no family.
     """
     fixed = None if protocol == "auto" else (registry.family(protocol),)
+    decoders: dict[str, EscDecoder] = {}  # one per family: this capture is one stream
     for item in read_capture(path):
         if isinstance(item, BadLine):
             yield item
@@ -300,17 +301,23 @@ def decode_capture(
         if not candidates:
             yield UndecodedFrame(item, "", None)
             continue
-        yield _decode_one(item, candidates, esc_nodes)
+        yield _decode_one(item, candidates, decoders, esc_nodes)
 
 
 def _decode_one(
-    msg: can.Message, candidates: Sequence[EscFamily], esc_nodes: Collection[int] | None
+    msg: can.Message,
+    candidates: Sequence[EscFamily],
+    decoders: dict[str, EscDecoder],
+    esc_nodes: Collection[int] | None,
 ) -> DecodedFrame | UndecodedFrame:
     error: FrameError | None = None
     blamed = candidates[0].name
     for family in candidates:
+        decoder = decoders.get(family.name)
+        if decoder is None:
+            decoder = decoders[family.name] = family.decoder()
         try:
-            frame = family.decode(msg, esc_nodes)
+            frame = decoder.decode(msg, esc_nodes)
         except FrameError as exc:
             if error is None:
                 error, blamed = exc, family.name

@@ -37,6 +37,7 @@ from bridge.config_checks import (
 )
 from bridge.errors import ConfigError
 from bridge.escs import registry
+from bridge.escs.family import EscFamily, EscSetup
 
 if TYPE_CHECKING:
     from bridge.mixing.definition import MixerDefinition
@@ -454,6 +455,18 @@ class BridgeConfig:
         return self.can.bitrate or registry.family(self.output.protocol).default_bitrate
 
     @property
+    def family(self) -> EscFamily:
+        """The ESC family on the bus (``[output] protocol``)."""
+        return registry.family(self.output.protocol)
+
+    @property
+    def esc_setup(self) -> EscSetup[Any]:
+        """What the family is given of this configuration: its keys and the ESC IDs (sized by
+        :func:`with_esc_count`), as its check returns them (the check passed when the
+        configuration was built)."""
+        return _checked_setup(self)
+
+    @property
     def command_sender_ids(self) -> frozenset[int]:
         """The system IDs whose motor-moving commands are obeyed: ``[mavlink] command_senders``,
         or 255 (a ground station's usual ID) and the autopilot's system ID."""
@@ -532,15 +545,39 @@ def _check_cross_section(config: BridgeConfig) -> None:
                 f"{source}: [mavlink] output_messages: {url!r} is not one of [mavlink] outputs "
                 f"({listed}); expected an output URL written exactly as in outputs"
             )
-    for family in registry.families():
-        family.check_config(config)
+    keys, ids = config.escs.keys(config.output.protocol), config.escs.ids
+    for name, values in _per_esc_lists(keys):
+        if values and ids and len(values) != len(ids):
+            raise ConfigError(
+                f"{source}: [escs] {name} has {len(values)} entries but ids has {len(ids)}; "
+                "expected one per ESC"
+            )
+    _checked_setup(config)
+
+
+def _per_esc_lists(keys: Any) -> list[tuple[str, tuple[int, ...]]]:
+    """A family's per-ESC lists (keys made with ``per_esc=True``): (name, value) each."""
+    return [(f.name, getattr(keys, f.name)) for f in fields(keys) if f.metadata["per_esc"]]
+
+
+def _checked_setup(config: BridgeConfig) -> EscSetup[Any]:
+    """The selected family's check of its keys (only the selected family's keys are checked
+    against the rest; the others' were checked for form)."""
+    family = config.family
+    setup = EscSetup(config.escs.ids, config.escs.keys(family.name))
+    try:
+        return family.check(setup, config.rate_hz)
+    except ConfigError as exc:
+        raise ConfigError(f"{config.source}: {exc}") from None
 
 
 def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
-    """Fill the ESC lists' defaults (IDs and channels 1..N) once the mixer's size is known.
+    """Fill the ESC lists' defaults (IDs and the family's per-ESC lists, 1..N) once the
+    mixer's size is known, and check the family's keys against them.
 
     Raises:
-        ConfigError: the configured lists do not have one entry per mixer output.
+        ConfigError: the configured lists do not have one entry per mixer output, or the
+            family cannot drive these ESCs so.
     """
     escs = config.escs
     if escs.ids and len(escs.ids) != n_outputs:
@@ -548,17 +585,27 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             f"{config.source}: [escs] ids has {len(escs.ids)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
         )
-    config = replace(config, escs=replace(escs, ids=escs.ids or tuple(range(1, n_outputs + 1))))
-    families = {
-        family.name: family.with_esc_count(config, n_outputs) for family in registry.families()
-    }
+    ids = escs.ids or tuple(range(1, n_outputs + 1))
+    name = config.output.protocol
+    keys = escs.keys(name)
+    sized = {}
+    for key_name, values in _per_esc_lists(keys):
+        if values and len(values) != n_outputs:
+            raise ConfigError(
+                f"{config.source}: [escs] {key_name} has {len(values)} entries but mixer "
+                f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
+            )
+        sized[key_name] = values or tuple(range(1, n_outputs + 1))
+    families = {**escs.families, name: replace(keys, **sized)}
+    config = replace(config, escs=replace(escs, ids=ids, families=families))
+    _checked_setup(config)
     pole_pairs = config.telemetry.pole_pairs
     if isinstance(pole_pairs, tuple) and len(pole_pairs) != n_outputs:
         raise ConfigError(
             f"{config.source}: [telemetry] pole_pairs has {len(pole_pairs)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one number, or one per output"
         )
-    return replace(config, escs=replace(config.escs, families=families))
+    return config
 
 
 def with_mixer_esc_count(
@@ -575,12 +622,3 @@ def with_mixer_esc_count(
 
         mixer = load_mixer(config.mixer.name)
     return with_esc_count(config, len(mixer.outputs))
-
-
-def documented_keys() -> list[tuple[str, str, Any, str]]:
-    """(section, key, default, doc) for every key, for docs and the test that checks them."""
-    rows = []
-    for name, cls in SECTIONS.items():
-        for f in _section_fields(cls):
-            rows.append((name, f.name, f.default, f.metadata["doc"]))
-    return rows

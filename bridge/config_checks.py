@@ -119,7 +119,12 @@ def key(
     check: Callable[[Any], str | None],
     doc: str,
     convert: Callable[[Any], Any] | None = None,
+    *,
+    per_esc: bool = False,
 ) -> Any:
     """A config key: its default, its validator (returns what was expected, or None), its doc,
-    and what turns a checked value into the stored one (``convert``; None: kept as written)."""
-    return field(default=default, metadata={"check": check, "doc": doc, "convert": convert})
+    and what turns a checked value into the stored one (``convert``; None: kept as written).
+    ``per_esc``: a list with one entry per ESC, default 1..N (an ESC family's key; checked
+    against ``[escs] ids`` and the mixer's size, and filled, by :mod:`bridge.config`)."""
+    metadata = {"check": check, "doc": doc, "convert": convert, "per_esc": per_esc}
+    return field(default=default, metadata=metadata)

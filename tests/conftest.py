@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,10 @@ from hypothesis import HealthCheck, settings
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
+from bridge.config import SECTIONS, EscsConfig
+from bridge.escs import registry
 from bridge.mavlink import load_dialect
+from bridge.sim.autopilot import PHASES
 
 # Hypothesis fails an example that takes over 200 ms (its deadline) and a test whose examples are
 # slow to generate (too_slow); on a loaded machine (the suite's own workers, CI on shared cores)
@@ -436,3 +440,21 @@ class RealtimeAutopilot:
         self._process.join(5)
         if self._process.is_alive():
             self._process.kill()
+
+
+def documented_keys() -> list[tuple[str, str, Any, str]]:
+    """(section, key, default, doc) for every configuration key, every family's ``[escs]`` keys
+    included, as docs and their tests list them."""
+    rows = []
+    for name, cls in SECTIONS.items():
+        keys = [f for f in fields(cls) if f.name != "families"]
+        if cls is EscsConfig:
+            keys += [f for family in registry.families() for f in fields(family.keys)]
+        rows += [(name, f.name, f.default, f.metadata["doc"]) for f in keys]
+    return rows
+
+
+def phase_start(name: str) -> float:
+    """When the demo flight's phase called ``name`` begins, in seconds from its start."""
+    names = [phase for phase, _ in PHASES]
+    return sum(duration for _, duration in PHASES[: names.index(name)])

@@ -3,18 +3,27 @@
 The rules, each checked on the source (ast and tokens, nothing imported) except the hot loop's,
 which imports it in a fresh interpreter and looks at what came along:
 
-- no import cycle between the bridge's modules, lazy imports included (``TYPE_CHECKING`` blocks
-  are for the type checker only);
+- no import cycle between the bridge's modules, lazy imports included, and none either once the
+  imports only the type checker follows (``TYPE_CHECKING`` blocks) are counted;
 - the pure layers (ESC codecs, mixing, the ESC state and its Zenoh schema, the safety decision)
   import no I/O layer: not the output loop, the daemon, the CLI or the configuration, at any
   depth of a function;
+- the ESC families' layer (``bridge/escs/``) imports nothing above it, type-only imports
+  included: a family gets its own keys and the few common values it needs, not the
+  configuration;
 - the output loop's process imports nothing it does not run: no CLI, daemon (its supervisor,
   health reports, motor-test control), telemetry side (reader, state, publishers), monitor,
   simulator, demo, Zenoh or rich;
 - nothing outside ``bridge/escs/`` names an ESC family: the families are found through
   ``bridge.escs.registry``;
 - no family imports another: what two families share (the UAVCAN v0 framing, the driver
-  protocol, the filters) is a module directly under ``bridge/escs/``.
+  helpers, the filters) is a module directly under ``bridge/escs/``;
+- the interface a family implements stays narrow (:data:`FAMILY_MEMBERS`), and every family
+  implements exactly it, no stubs and no extras;
+- no module imports another's private names (``_name``), and a private module (``_name.py``) is
+  imported only from within its own package;
+- nothing under ``bridge/`` is there only for the tests or the benches: every public function
+  and class is used by the bridge itself (or is an entry point).
 """
 
 from __future__ import annotations
@@ -73,9 +82,10 @@ def _targets(module: str, node: ast.Import | ast.ImportFrom) -> Iterator[str]:
             yield name
 
 
-def imports(module: str) -> set[str]:
+def imports(module: str, *, type_checking: bool = False) -> set[str]:
     """Every bridge module ``module`` imports, at any depth (lazy imports in functions too:
-    they close a cycle just the same once called), outside ``TYPE_CHECKING`` blocks."""
+    they close a cycle just the same once called); with ``type_checking``, those of
+    ``TYPE_CHECKING`` blocks too (imports for the type checker only)."""
     tree = ast.parse(MODULES[module].read_text(encoding="utf-8"))
     found: set[str] = set()
 
@@ -83,7 +93,7 @@ def imports(module: str) -> set[str]:
         for node in nodes:
             if isinstance(node, ast.Import | ast.ImportFrom):
                 found.update(_targets(module, node))
-            elif not (isinstance(node, ast.If) and _is_type_checking(node)):
+            elif type_checking or not (isinstance(node, ast.If) and _is_type_checking(node)):
                 for field in ("body", "orelse", "handlers", "finalbody"):
                     visit(getattr(node, field, []) or [])
 
@@ -92,8 +102,9 @@ def imports(module: str) -> set[str]:
     return found
 
 
-def test_no_module_imports_itself_back() -> None:
-    graph = {m: imports(m) for m in MODULES}
+@pytest.mark.parametrize("type_checking", [False, True], ids=["run", "type-checking"])
+def test_no_module_imports_itself_back(type_checking: bool) -> None:
+    graph = {m: imports(m, type_checking=type_checking) for m in MODULES}
     cycles: list[list[str]] = []
     state: dict[str, int] = {}  # 1: on the path, 2: done
 
@@ -115,7 +126,7 @@ def test_no_module_imports_itself_back() -> None:
 PURE = re.compile(
     r"bridge\.(mixing(\..*)?|telemetry\.(state|payload)|output\.safety"
     r"|escs\.(family|registry|uavcan_v0)"
-    r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
+    r"|escs\.\w+\.(records|layout|messages|services|codec|wire|telemetry))$"
 )
 """The pure layers: no I/O of their own, so they run (and are tested) anywhere."""
 IO_LAYERS = re.compile(r"bridge\.(output(\..*)?|daemon(\..*)?|cli(\..*)?|config|config_file)$")
@@ -215,3 +226,155 @@ def vendor_mentions(path: Path) -> list[str]:
 def test_nothing_outside_escs_names_a_family() -> None:
     outside = [p for m, p in MODULES.items() if not m.startswith("bridge.escs")]
     assert [hit for p in outside for hit in vendor_mentions(p)] == []
+
+
+BELOW_THE_FAMILIES = re.compile(
+    r"bridge\.(escs(\..*)?|errors|config_checks|bitrate|_compat|sim\.(base|motor))$"
+)
+"""What a family may import: its own layer, the errors, the key validators (and the bit rates
+they read), the standard library's backports, and the simulated ESC's base and motor."""
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if m.startswith("bridge.escs")))
+def test_the_family_layer_imports_nothing_above_it(module: str) -> None:
+    above = {m for m in imports(module, type_checking=True) if not BELOW_THE_FAMILIES.match(m)}
+    assert above == set(), f"{module} imports {sorted(above)}"
+
+
+FAMILY_MEMBERS = frozenset(
+    {
+        "name",
+        "title",
+        "node_ids",
+        "default_rate_hz",
+        "default_bitrate",
+        "keys",
+        "owns",
+        "decoder",
+        "reader_filters",
+        "check",
+        "driver",
+        "bus_figures",
+    }
+)
+"""What the core needs of a family (bridge/escs/family.py): a dozen members. The simulator,
+set-up commands and ID learning are the family's tool modules, not members."""
+
+
+def _members(tree: ast.Module, class_name: str) -> set[str]:
+    """The attributes and methods a class defines in its body (not ``__init__``, not private)."""
+    body = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == class_name).body
+    names = set()
+    for node in body:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            names.add(node.name)
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.add(node.target.id)
+        elif isinstance(node, ast.Assign):
+            names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+    return {n for n in names if not n.startswith("_")}
+
+
+def test_the_family_interface_is_narrow() -> None:
+    tree = ast.parse(MODULES["bridge.escs.family"].read_text(encoding="utf-8"))
+    assert _members(tree, "EscFamily") == FAMILY_MEMBERS
+
+
+def _registered_families() -> dict[str, tuple[str, str]]:
+    """name -> (module, class) of every family in the registry, read from its source."""
+    tree = ast.parse(MODULES["bridge.escs.registry"].read_text(encoding="utf-8"))
+    table = next(
+        n.value
+        for n in tree.body
+        if isinstance(n, ast.AnnAssign)
+        and isinstance(n.target, ast.Name)
+        and n.target.id == "FAMILIES"
+    )
+    assert isinstance(table, ast.Dict)
+    found = {}
+    for key, value in zip(table.keys, table.values, strict=True):
+        assert isinstance(key, ast.Constant) and isinstance(value, ast.Constant)
+        module, _, class_name = str(value.value).partition(":")
+        found[str(key.value)] = (module, class_name)
+    return found
+
+
+@pytest.mark.parametrize("family", sorted(_registered_families()))
+def test_every_family_implements_exactly_the_interface(family: str) -> None:
+    module, class_name = _registered_families()[family]
+    tree = ast.parse(MODULES[module].read_text(encoding="utf-8"))
+    assert _members(tree, class_name) == FAMILY_MEMBERS
+
+
+def private_imports(module: str) -> list[str]:
+    """Private names ``module`` imports from another module (``from x import _y``), and private
+    modules (``_x.py``) it imports from outside their package."""
+    tree = ast.parse(MODULES[module].read_text(encoding="utf-8"))
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Import | ast.ImportFrom):
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+            found += [
+                f"{node.module}.{a.name}"
+                for a in node.names
+                if a.name.startswith("_") and not a.name.startswith("__")
+            ]
+        for target in _targets(module, node):
+            package, _, name = target.rpartition(".")
+            if name.startswith("_") and not (module + ".").startswith(package + "."):
+                found.append(target)
+    return found
+
+
+def test_no_module_imports_another_s_private_names() -> None:
+    found = {m: private_imports(m) for m in MODULES}
+    assert {m: names for m, names in found.items() if names} == {}
+
+
+def _defined(tree: ast.Module) -> list[str]:
+    """The public functions and classes a module defines at its top level."""
+    return [
+        n.name
+        for n in tree.body
+        if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef)
+        and not n.name.startswith("_")
+    ]
+
+
+def _used(tree: ast.Module) -> set[str]:
+    """Every name a module reads: names, attributes, imported names and the attribute names it
+    looks up by string (``getattr(tool, "simulators")``)."""
+    used = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name) and not isinstance(node.ctx, ast.Store):
+            used.add(node.id)
+        elif isinstance(node, ast.Attribute):
+            used.add(node.attr)
+        elif isinstance(node, ast.ImportFrom):
+            used.update(a.name for a in node.names)
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id in ("getattr", "hasattr")
+            and len(node.args) >= 2
+            and isinstance(node.args[1], ast.Constant)
+        ):
+            used.add(str(node.args[1].value))
+    return used
+
+
+def test_nothing_in_the_package_is_there_only_for_tests_or_benches() -> None:
+    """Every public function and class of ``bridge/`` is used somewhere in ``bridge/``: what
+    only the tests or the benches use belongs with them. Entry points are used from outside:
+    the command (pyproject's ``[project.scripts]``) and the families (the registry's table)."""
+    trees = {m: ast.parse(p.read_text(encoding="utf-8")) for m, p in MODULES.items()}
+    used = set().union(*(_used(tree) for tree in trees.values()))
+    entry_points = {"main"} | {cls for _, cls in _registered_families().values()}
+    unused = [
+        f"{module}.{name}"
+        for module, tree in trees.items()
+        for name in _defined(tree)
+        if name not in used and name not in entry_points
+    ]
+    assert unused == []

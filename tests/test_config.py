@@ -7,10 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import documented_keys
 
 from bridge.cli import build_parser as _parser
 from bridge.cli.run import run_config
-from bridge.config import build_config, documented_keys, with_esc_count
+from bridge.config import build_config, with_esc_count
 from bridge.config_file import read_config_file
 from bridge.daemon import preflight
 from bridge.errors import ConfigError
@@ -102,11 +103,21 @@ def test_esc_lists_must_match_the_mixer() -> None:
 
 
 def test_ckesc_frame_must_carry_the_channels() -> None:
-    config = build_config(
-        {"escs": {"ckesc_command": "14b", "ckesc_channels": [1, 2, 3, 5]}}, "v.toml"
-    )
-    with pytest.raises(ConfigError, match=r"'14b' carries channels 1..4"):
-        with_esc_count(config, 4)
+    with pytest.raises(ConfigError, match=r"'14b' carries channels 1..4.* \[1, 2, 3, 5\]"):
+        build_config({"escs": {"ckesc_command": "14b", "ckesc_channels": [1, 2, 3, 5]}}, "v")
+    # The default channels, 1..N, once the mixer says N.
+    config = build_config({"escs": {"ckesc_command": "14b"}}, "v.toml")
+    with pytest.raises(ConfigError, match=r"^v.toml: \[escs\] ckesc_command '14b' carries"):
+        with_esc_count(config, 6)
+
+
+def test_only_the_selected_family_checks_its_keys() -> None:
+    keys = {"ckesc_command": "14b", "ckesc_channels": [1, 2, 3, 5, 6]}
+    with pytest.raises(ConfigError, match=r"ckesc_channels has 5 entries but ids has 4"):
+        build_config({"escs": {"ids": [1, 2, 3, 4], **keys}}, "v.toml")
+    # FT on the bus: the CKESC keys are checked for form only, and not sized to the mixer.
+    ft = build_config({"output": {"protocol": "ft"}, "escs": {"ids": [1, 2, 3, 4], **keys}}, "v")
+    assert with_esc_count(ft, 4).escs.keys("ckesc").ckesc_channels == (1, 2, 3, 5, 6)
 
 
 def test_dronecan_keys_are_checked() -> None:

@@ -17,10 +17,13 @@ from conftest import Autopilot, Daemon, Observer
 from pymavlink import mavutil
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan.codec import Decoder as DronecanDecoder
 from bridge.escs.dronecan.codec import DronecanFrame, NodeStatus
 from bridge.escs.dronecan.codec import RawCommand as DronecanRawCommand
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 
 ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
 
@@ -28,11 +31,12 @@ ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter fir
 def ckesc_throttles(msg: can.Message) -> tuple[int, ...] | None:
     """The throttles of a CKESC throttle frame, or None for any other frame (junk included)."""
     try:
-        frame = ckesc.decode(msg)
+        frame = ckesc_codec.decode(msg)
     except CodecError:
         return None
     if frame is None or not isinstance(
-        frame.message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
+        frame.message,
+        ckesc_records.RawCommand12b | ckesc_records.RawCommand14b | ckesc_records.RawCommand10b,
     ):
         return None
     return frame.message.throttles
@@ -95,10 +99,10 @@ def test_ckesc_throttle_sweep(
 @pytest.mark.parametrize(
     ("mode", "record", "value_of"),
     [
-        ("current", ft.SetCurrent, lambda m: m.current_a / 20.0),
-        ("current_percent", ft.SetCurrentPercent, lambda m: m.fraction),
-        ("duty", ft.SetDuty, lambda m: m.duty / 0.95),
-        ("erpm", ft.SetErpm, lambda m: m.erpm / 50_000),
+        ("current", ft_records.SetCurrent, lambda m: m.current_a / 20.0),
+        ("current_percent", ft_records.SetCurrentPercent, lambda m: m.fraction),
+        ("duty", ft_records.SetDuty, lambda m: m.duty / 0.95),
+        ("erpm", ft_records.SetErpm, lambda m: m.erpm / 50_000),
     ],
 )
 def test_ft_modes(
@@ -107,7 +111,7 @@ def test_ft_modes(
     observer: Observer,
     mode: str,
     record: type,
-    value_of: Callable[[ft.FtMessage], float],
+    value_of: Callable[[ft_records.FtMessage], float],
     tmp_path: Path,
 ) -> None:
     config = tmp_path / "bridge.toml"
@@ -120,7 +124,7 @@ def test_ft_modes(
     got: dict[int, float] = {}
 
     def matches(msg: can.Message) -> bool:
-        frame = ft.decode(msg)
+        frame = ft_codec.decode(msg)
         if frame is None or not isinstance(frame.message, record):
             return False
         got[frame.esc_id] = value_of(frame.message)
@@ -133,7 +137,7 @@ def test_ft_modes(
     recent = [
         (m.timestamp, f.esc_id)
         for _, m in observer.frames[-40:]
-        if (f := ft.decode(m)) is not None and isinstance(f.message, record)
+        if (f := ft_codec.decode(m)) is not None and isinstance(f.message, record)
     ]
     ids = [esc for _, esc in recent]
     assert all(b == (a - 10) % 4 + 11 for a, b in itertools.pairwise(ids))

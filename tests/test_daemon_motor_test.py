@@ -17,7 +17,10 @@ import zenoh
 from conftest import Autopilot, Daemon, MavlinkReceiver, Observer, free_port
 from pymavlink import mavutil
 
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.mavlink import load_dialect
 from bridge.telemetry.payload import HealthPayload
 
@@ -108,20 +111,20 @@ def write_config(path: Path, gcs: Gcs, extra: str = "", motor_test: bool = True)
 
 
 def throttles(msg: can.Message) -> tuple[int, ...] | None:
-    frame = ckesc.decode(msg)
-    if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+    frame = ckesc_codec.decode(msg)
+    if frame is None or not isinstance(frame.message, ckesc_records.RawCommand12b):
         return None
     return frame.message.throttles
 
 
 def ft_command(msg: can.Message) -> tuple[int, str, float] | None:
     """(ESC ID, "duty" or "current", value) of an FT duty or current command, else None."""
-    frame = ft.decode(msg)
+    frame = ft_codec.decode(msg)
     if frame is None:
         return None
-    if isinstance(frame.message, ft.SetDuty):
+    if isinstance(frame.message, ft_records.SetDuty):
         return frame.esc_id, "duty", round(frame.message.duty, 6)
-    if isinstance(frame.message, ft.SetCurrent):
+    if isinstance(frame.message, ft_records.SetCurrent):
         return frame.esc_id, "current", frame.message.current_a
     return frame.esc_id, type(frame.message).__name__, 0.0
 
@@ -197,7 +200,7 @@ def test_pwm_on_ft_in_duty_mode_sends_duty_to_one_esc_and_safe_current_to_the_re
     extra = '[output]\nprotocol = "ft"\n[escs]\nids = [11, 12, 13, 14]\nft_mode = "duty"\n'
     start_daemon("--config", write_config(tmp_path / "b.toml", gcs, extra))
     autopilot.start_stream(50)
-    observer.wait_for(lambda m: ft.decode(m) is not None, START_TIMEOUT_S)
+    observer.wait_for(lambda m: ft_codec.decode(m) is not None, START_TIMEOUT_S)
     heard_disarmed(gcs)
     sent = time.monotonic()
     assert gcs.motor_test(2, PWM, 1500, timeout_s=0.6) == ACCEPTED  # PWM 1500: half throttle

@@ -20,9 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from conftest import documented_keys
 
 from bridge.cli import build_parser
-from bridge.config import build_config, documented_keys
+from bridge.config import build_config
 from bridge.config_file import read_config_file
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -13,8 +13,11 @@ from pathlib import Path
 import can
 import pytest
 
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import codec as dronecan
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.escs.vesc import codec as vesc
 from bridge.escs.vesc import records as vesc_records
 
@@ -133,34 +136,38 @@ def example_rows(section: str) -> dict[str, list[can.Message]]:
 
 
 CKESC_EXAMPLES = {
-    "RawCommand_12b, group 1, throttles 1000, 1500, 0, 2000": ckesc.CkescFrame(
-        0, 0, None, 0, ckesc.RawCommand12b(1, (1000, 1500, 0, 2000))
+    "RawCommand_12b, group 1, throttles 1000, 1500, 0, 2000": ckesc_codec.CkescFrame(
+        0, 0, None, 0, ckesc_records.RawCommand12b(1, (1000, 1500, 0, 2000))
     ),
-    "RawCommand_14b, throttles 1000, 1000, 1000, 1000": ckesc.CkescFrame(
-        0, 0, None, 0, ckesc.RawCommand14b((1000, 1000, 1000, 1000))
+    "RawCommand_14b, throttles 1000, 1000, 1000, 1000": ckesc_codec.CkescFrame(
+        0, 0, None, 0, ckesc_records.RawCommand14b((1000, 1000, 1000, 1000))
     ),
-    "RawCommand_10b, throttles 100, 200, 300, 400, 500, 1000": ckesc.CkescFrame(
-        0, 0, None, None, ckesc.RawCommand10b((100, 200, 300, 400, 500, 1000))
+    "RawCommand_10b, throttles 100, 200, 300, 400, 500, 1000": ckesc_codec.CkescFrame(
+        0, 0, None, None, ckesc_records.RawCommand10b((100, 200, 300, 400, 500, 1000))
     ),
-    "Set LED request to node 5: save, green, steady": ckesc.CkescFrame(
-        24, 0, 5, 0, ckesc.SetLedRequest(True, ckesc.LedColor.GREEN, 0)
+    "Set LED request to node 5: save, green, steady": ckesc_codec.CkescFrame(
+        24, 0, 5, 0, ckesc_records.SetLedRequest(True, ckesc_records.LedColor.GREEN, 0)
     ),
     "MSG1 from node 3: 12000 rpm, throttle 1500, status 0x0100 (running), transfer ID 7": (
-        ckesc.CkescFrame(31, 3, None, 7, ckesc.Msg1(12000, 1500, ckesc.Msg1Status.RUNNING))
+        ckesc_codec.CkescFrame(
+            31, 3, None, 7, ckesc_records.Msg1(12000, 1500, ckesc_records.Msg1Status.RUNNING)
+        )
     ),
-    "MSG2 from node 3: 25.20 V, 12.34 A, 45 °C, transfer ID 2": ckesc.CkescFrame(
-        31, 3, None, 2, ckesc.Msg2(25.20, 12.34, 45)
+    "MSG2 from node 3: 25.20 V, 12.34 A, 45 °C, transfer ID 2": ckesc_codec.CkescFrame(
+        31, 3, None, 2, ckesc_records.Msg2(25.20, 12.34, 45)
     ),
 }
 
 FT_EXAMPLES = {
-    "SET_CURRENT_GEAR_CRC16 to ESC 1: 50 A, gear none": ft.FtFrame(
-        1, ft.SetCurrent(50.0, ft.Gear.NONE, crc=True)
+    "SET_CURRENT_GEAR_CRC16 to ESC 1: 50 A, gear none": ft_records.FtFrame(
+        1, ft_records.SetCurrent(50.0, ft_records.Gear.NONE, crc=True)
     ),
-    "SET_CURRENT_GEAR to ESC 2: 1.5 A, gear low": ft.FtFrame(
-        2, ft.SetCurrent(1.5, ft.Gear.LOW, crc=False)
+    "SET_CURRENT_GEAR to ESC 2: 1.5 A, gear low": ft_records.FtFrame(
+        2, ft_records.SetCurrent(1.5, ft_records.Gear.LOW, crc=False)
     ),
-    "SET_CURRENT_BRAKE to ESC 3: 2 A": ft.FtFrame(3, ft.SetCurrentBrake(2.0, crc=False)),
+    "SET_CURRENT_BRAKE to ESC 3: 2 A": ft_records.FtFrame(
+        3, ft_records.SetCurrentBrake(2.0, crc=False)
+    ),
 }
 
 DRONECAN_EXAMPLES: dict[str, dronecan.RawCommand | dronecan.NodeStatus] = {
@@ -207,16 +214,16 @@ def test_the_pages_example_tables_are_the_ones_checked_here() -> None:
 def test_ckesc_example_frame(what: str) -> None:
     (frame,) = example_rows("3.9")[what]
     expected = CKESC_EXAMPLES[what]
-    assert ckesc.decode(frame) == expected
-    assert same_frame(ckesc.encode(expected), frame)
+    assert ckesc_codec.decode(frame) == expected
+    assert same_frame(ckesc_codec.encode(expected), frame)
 
 
 @pytest.mark.parametrize("what", sorted(FT_EXAMPLES))
 def test_ft_example_frame(what: str) -> None:
     (frame,) = example_rows("4.8")[what]
     expected = FT_EXAMPLES[what]
-    assert ft.decode(frame) == expected
-    assert same_frame(ft.encode(expected), frame)
+    assert ft_codec.decode(frame) == expected
+    assert same_frame(ft_codec.encode(expected), frame)
 
 
 @pytest.mark.parametrize("what", sorted(VESC_EXAMPLES))
@@ -237,7 +244,7 @@ def test_ft_crc_check_value_is_the_pages() -> None:
     text = DOC.read_text(encoding="utf-8")
     stated = re.search(r"CRC-16/MODBUS of the ASCII bytes `123456789` is `0x([0-9A-F]{4})`", text)
     assert stated is not None
-    assert ft.crc16_modbus(b"123456789") == int(stated.group(1), 16) == 0x4B37
+    assert ft_records.crc16_modbus(b"123456789") == int(stated.group(1), 16) == 0x4B37
 
 
 @pytest.mark.parametrize("what", sorted(DRONECAN_EXAMPLES))

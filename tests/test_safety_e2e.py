@@ -18,7 +18,7 @@ from conftest import Autopilot, Daemon, Observer, RealtimeAutopilot
 from pymavlink import mavutil
 from test_daemon_e2e import ARM_TIMEOUT_S, arm_at, ckesc_throttles, expect_throttles
 
-from bridge.sim.load import preset
+from loadgen.load import preset
 
 HOVER = (1000, 1000, 1000, 1000)  # PWM 1500 on a passthrough quad
 SAFE = (0, 0, 0, 0)

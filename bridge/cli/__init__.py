@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from bridge import __version__
 from bridge.cli._common import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from bridge.errors import BridgeError, ConfigError
+from bridge.escs import registry
 from bridge.stopping import StopSignals
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``esc-bridge`` parser with every subcommand; each sets ``handler`` to its function."""
     parser = argparse.ArgumentParser(
         prog="esc-bridge",
-        description="Bridge between MAVLink autopilots and CAN-bus ESCs (CKESC, Flipsky FT).",
+        description=f"Bridge between MAVLink autopilots and CAN-bus ESCs ({registry.titles()}).",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

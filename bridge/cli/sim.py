@@ -170,8 +170,7 @@ def _sim(args: argparse.Namespace) -> int:
                 f"(motors 1..{len(ids)})"
             )
         faults.append(ScheduledFault(ids[motor - 1], kind, seconds))
-    channels = registry.family(protocol).channels(config)
-    escs = make_escs(protocol, len(ids), ids, channels=None if channels is None else list(channels))
+    escs = make_escs(protocol, len(ids), ids, keys=config.esc_setup.keys)
     try:
         bus = open_bus(config.can, config.bitrate)
     except LinkError as exc:

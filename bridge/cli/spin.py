@@ -1,4 +1,4 @@
-"""``esc-bridge esc spin``: the motor test for both protocols, propellers off."""
+"""``esc-bridge esc spin``: the motor test for every ESC family, propellers off."""
 
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ PROPS_WARNING = (
 def add_parser(esc_commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     spin = esc_commands.add_parser(
         "spin",
-        help="spin one motor for a few seconds to check it, PROPELLERS OFF (CKESC or FT)",
+        help="spin one motor for a few seconds to check it, PROPELLERS OFF "
+        f"({registry.titles('or')})",
         description="Spin one motor with its propeller removed, to check its direction, "
         "wiring and ESC: ramp up to --throttle over 0.5 s, hold, ramp down, stop at --seconds "
         "whatever happens, then send safe values to every ESC; the other motors get safe "
@@ -138,7 +139,7 @@ def _esc_spin(args: argparse.Namespace) -> int:
     request = motor_test.SpinRequest(args.motor, args.throttle, args.seconds)
     plan = spin.plan_spin(spin_config(args), request)
     config = plan.config
-    esc = registry.family(config.output.protocol).describe_esc(config, plan.index)
+    esc = config.family.driver(config.esc_setup).describe_esc(plan.index)
     print(
         f"spinning motor {request.motor} ({esc}) up to {100 * plan.fraction:g}% = "
         f"{motor_test.command_text(config, plan.fraction)} for {request.seconds:g} s on "

@@ -16,7 +16,7 @@ import can
 from bridge.can_io import SHAREABLE_INTERFACES, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
-from bridge.escs.drivers import flush_safe_values, make_driver
+from bridge.escs.drivers import flush_safe_values
 from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
 
@@ -127,7 +127,7 @@ def send_safe_values_after_death(config: BridgeConfig) -> int:
     except BridgeError as exc:
         log.error("cannot send safe values after the output loop died: %s", exc)
         return 0
-    driver = make_driver(config)
+    driver = config.family.driver(config.esc_setup)
     period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
     sent = 0
 

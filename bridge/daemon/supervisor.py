@@ -37,7 +37,6 @@ from bridge.daemon.motor_test_control import MotorTestControl
 from bridge.daemon.preflight import Plan
 from bridge.daemon.severity import SEVERITY_CRITICAL, SEVERITY_WARNING
 from bridge.errors import LinkError
-from bridge.escs import registry
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.relay import MainConnection, relay_pair
 from bridge.output.autopilot_input import InputSetup
@@ -92,11 +91,11 @@ class Supervisor:
                 raise LinkError("the output loop's relay of the autopilot link is gone")
             return relayed.pop()
 
-        # No input sink: the loop acts on the autopilot's outputs and arming, and counts them.
-        # Two inputs per input timeout at least: the loop arms on nothing slower.
+        # The loop acts on the autopilot's outputs and arming, and counts them. Two inputs per
+        # input timeout at least: the loop arms on nothing slower.
         needed_rate_hz = 2000 / config.output.input_timeout_ms
         self.link = MavlinkLink(
-            config.mavlink, None, tlog=tlog, uplink=uplink, needed_rate_hz=needed_rate_hz
+            config.mavlink, tlog=tlog, uplink=uplink, needed_rate_hz=needed_rate_hz
         )
         self.motor_test = MotorTestControl(
             limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
@@ -150,7 +149,7 @@ class Supervisor:
             "esc-bridge: %s x%d (%s), mixer %s, %d Hz, loop in a %s; %s",
             config.output.protocol,
             len(config.escs.ids),
-            registry.family(config.output.protocol).command_kind(config),
+            config.family.driver(config.esc_setup).kind,
             self._plan.mixer.name,
             config.rate_hz,
             self.runner.mode,

@@ -163,7 +163,9 @@ def bridge_settings(options: DemoOptions, ports: DemoPorts) -> dict[str, dict[st
             "vehicle": VEHICLE,
         },
     }
-    for section, values in registry.family(options.protocol).demo_settings(n).items():
+    # The family's own demo settings, if its simulator has any.
+    family_settings = getattr(registry.tool(options.protocol, "sim"), "DEMO_SETTINGS", {})
+    for section, values in family_settings.items():
         settings[section].update(values)
     return settings
 

@@ -1,41 +1,20 @@
-"""Output drivers: the mixer's command fractions to the frames of one output tick.
+"""What the families' drivers (:class:`~bridge.escs.family.EscDriver`) share: limiting a
+fraction to what a command may carry, and sending safe values at the ends of things.
 
-A driver (:class:`EscDriver`, each family's own) is the one place where a
-fraction becomes a protocol value, so it is also where every value is limited to what the
-protocol allows: whatever the stages before it did, no frame ever carries an out-of-range
-command. The output loop ticks ``ticks_per_cycle`` times per cycle; a family that addresses
-every ESC in one tick has one tick per cycle, one that needs a frame per ESC spreads them
-across the cycle. This module holds what every driver shares.
+A driver is the one place where a fraction becomes a protocol value, so it is also where every
+value is limited to what the protocol allows: whatever the stages before it did, no frame ever
+carries an out-of-range command.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Protocol
+from collections.abc import Callable
 
 import can
 
-from bridge.escs import registry
-
-if TYPE_CHECKING:
-    from bridge.config import BridgeConfig
-
-
-class EscDriver(Protocol):
-    """Turns one tick's command fractions into CAN frames, limited to the protocol's range."""
-
-    ticks_per_cycle: int
-    """Ticks to address every ESC once (1: every tick addresses every ESC)."""
-
-    def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        """Frames for ``tick`` commanding ``fractions`` (one per mixer output, -1..1)."""
-        ...
-
-    def safe_frames(self, tick: int) -> list[can.Message]:
-        """Frames for ``tick`` commanding the safe output (motors stopped)."""
-        ...
+from bridge.escs.family import EscDriver
 
 
 def unit_fraction(fraction: float) -> float:
@@ -48,11 +27,6 @@ def signed_fraction(fraction: float) -> float:
     if -1.0 <= fraction <= 1.0:
         return fraction
     return 1.0 if fraction > 1.0 else -1.0 if fraction < -1.0 else 0.0
-
-
-def make_driver(config: BridgeConfig) -> EscDriver:
-    """The driver for ``config`` (its ESC lists already filled in)."""
-    return registry.family(config.output.protocol).driver(config)
 
 
 def flush_safe_values(

@@ -67,12 +67,6 @@ def families_of(arbitration_id: int) -> tuple[EscFamily, ...]:
     return tuple(candidate for candidate in families() if candidate.owns(arbitration_id))
 
 
-def family_of(arbitration_id: int) -> EscFamily | None:
-    """The first family (in :data:`FAMILIES` order) whose ID space holds ``arbitration_id``."""
-    candidates = families_of(arbitration_id)
-    return candidates[0] if candidates else None
-
-
 def tool(name: str, module: str) -> ModuleType | None:
     """The family ``name``'s tool module ``module`` (``sim``, ``setup`` or ``cli``: see
     :mod:`bridge.escs.family`), imported now; None if the family has none.
@@ -90,7 +84,7 @@ def tool(name: str, module: str) -> ModuleType | None:
         raise
 
 
-def titles() -> str:
+def titles(conjunction: str = "and") -> str:
     """Every family's title, for help texts: "CKESC, FT and DroneCAN"."""
     shown = [family(name).title for name in FAMILIES]
-    return shown[0] if len(shown) == 1 else f"{', '.join(shown[:-1])} and {shown[-1]}"
+    return shown[0] if len(shown) == 1 else f"{', '.join(shown[:-1])} {conjunction} {shown[-1]}"

@@ -69,7 +69,6 @@ __all__ = [
     "Frame",
     "FrameScanner",
     "ReplayGuard",
-    "crc_x25",
     "frame_crc",
     "signature_ok",
     "signing_timestamp",
@@ -101,13 +100,6 @@ _ZEROS: Final = bytes(255)  # zero-extension source: a payload is never longer t
 # reversing its 16-bit result gives the same CRC at C speed.
 _REVERSED: Final = bytes(int(f"{i:08b}"[::-1], 2) for i in range(256))
 _CRC_INIT: Final = 0xFFFF
-
-
-def crc_x25(data: bytes | bytearray, crc: int = _CRC_INIT) -> int:
-    """CRC-16/MCRF4XX (the MAVLink "X.25" CRC) of ``data``, continuing from ``crc``."""
-    crc = (_REVERSED[crc & 0xFF] << 8) | _REVERSED[crc >> 8]
-    crc = binascii.crc_hqx(data.translate(_REVERSED), crc)
-    return (_REVERSED[crc & 0xFF] << 8) | _REVERSED[crc >> 8]
 
 
 def frame_crc(body: bytes | bytearray, crc_extra: int) -> int:

@@ -1,15 +1,15 @@
-"""The MAVLink edge: the autopilot's motor outputs and arming state in; the bridge's HEARTBEAT,
-STATUSTEXT and ESC telemetry out, to the autopilot and to any extra outputs (a GCS).
+"""The MAVLink edge of the main process: the autopilot's link (relayed by the control loop, which
+acts on its motor outputs and arming state) and any extra outputs (a GCS); the bridge's
+HEARTBEAT, STATUSTEXT, ESC telemetry and command answers out.
 
 The main process's MAVLink, on pymavlink's codec (the dialect) and, through
 :mod:`~bridge.mavlink.connection`, its transports. A :class:`MavlinkLink` opens one connection
 to the autopilot plus one per ``[mavlink] outputs`` entry, and runs named daemon threads:
 
-* one reader per connection. On the autopilot's connection it decodes the configured output
-  message (:mod:`bridge.mavlink.actuators`) into an ``INPUT_VECTOR_LEN``-vector (``ch1..ch32,
-  roll, pitch, yaw, thrust``, the order of ``bridge.mixing.definition.INPUT_NAMES``; NaN =
-  absent) and hands it, with the arming state from the autopilot's HEARTBEAT, to an
-  :class:`InputSink`, and reads its boot clock from its SYSTEM_TIME and TIMESYNC
+* one reader per connection. On the autopilot's connection it counts the configured output
+  message (:mod:`bridge.mavlink.actuators` says which; the loop that owns the link decodes and
+  obeys it, and reports its count through :meth:`MavlinkLink.note_outputs`), takes the
+  autopilot's HEARTBEAT, and reads its boot clock from its SYSTEM_TIME and TIMESYNC
   (:mod:`bridge.mavlink.boot_time`, the outgoing ESC reports' stamps). On every connection it
   passes COMMAND_LONGs addressed to the bridge to the command handlers
   (:mod:`bridge.mavlink.commands`) and answers with COMMAND_ACK. When a TCP or serial
@@ -64,7 +64,7 @@ import threading
 import time
 from collections.abc import Callable, Collection
 from types import ModuleType, TracebackType
-from typing import Any, BinaryIO, Final, Protocol
+from typing import Any, BinaryIO, Final
 
 from bridge.config import MavlinkConfig
 from bridge.errors import LinkError
@@ -74,54 +74,18 @@ from bridge.mavlink.boot_time import AutopilotBootTime
 from bridge.mavlink.commands import CommandDispatcher, CommandHandler
 from bridge.mavlink.connection import POLL_S, Connection, open_pymavlink, wait_readable
 from bridge.mavlink.endpoints import Endpoint, check_endpoints
-from bridge.mavlink.frames import MAGIC_V2, Frame
 from bridge.mavlink.heartbeat import Heartbeat
 from bridge.mavlink.signing import SIGNATURE_REJECTED, codec_class, new_parser, setup_signing
 from bridge.mavlink.stats import LinkStats, OutputStats, log_sparsely
 from bridge.mavlink.tlog import Tlog
 
-__all__ = ["InputSink", "MavlinkLink"]
+__all__ = ["MavlinkLink"]
 
 log = logging.getLogger(__name__)
 
 _READ_SIZE: Final = 4096  # bytes per read; a UDP read returns one whole datagram whatever this is
 _JOIN_TIMEOUT_S: Final = 2.0
 _STATUSTEXT_LEN: Final = 50  # STATUSTEXT.text is char[50]
-_HEADER_V1: Final = 6  # bytes before the payload: magic, len, seq, sys, comp, msgid
-_HEADER_V2: Final = 10  # magic, len, incompat, compat, seq, sys, comp, msgid (3 bytes)
-
-
-class InputSink(Protocol):
-    """Receives what the autopilot commands. Called on the reader thread: keep it short."""
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        """A fresh input vector of :data:`~bridge.mavlink.actuators.INPUT_VECTOR_LEN` floats
-        (NaN = absent), stamped with ``time.monotonic_ns()`` at receipt. The list is the sink's
-        to keep."""
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        """The autopilot's arming state, on each of its HEARTBEATs (and, with the
-        ``hil_actuator_controls`` source, on each HIL_ACTUATOR_CONTROLS); monotonic ns."""
-
-
-def _frame_of(msg: Any) -> Frame:
-    """A pymavlink message as the frame the shared decoders read (checked by the parser).
-
-    The payload is cut from the message's buffer: pymavlink's ``get_payload()`` of a parsed
-    MAVLink 2 frame starts at the wrong offset."""
-    raw = bytes(msg.get_msgbuf())
-    version = 2 if raw[0] == MAGIC_V2 else 1
-    header = _HEADER_V2 if version == 2 else _HEADER_V1
-    return Frame(
-        msg.get_msgId(),
-        msg.get_srcSystem(),
-        msg.get_srcComponent(),
-        msg.get_seq(),
-        raw[header : header + raw[1]],
-        version,
-        msg.get_signed(),
-        raw,
-    )
 
 
 class MavlinkLink:
@@ -141,14 +105,12 @@ class MavlinkLink:
     def __init__(
         self,
         config: MavlinkConfig,
-        sink: InputSink | None,
         tlog: BinaryIO | None = None,
         uplink: Callable[[], Any] | None = None,
         needed_rate_hz: float = 0.0,
     ) -> None:
-        """``sink``: receives the autopilot's outputs and arming state; None when the owner of
-        the autopilot's link acts on them (the daemon's control loop), which then reports the
-        outputs it counted through :meth:`note_outputs`.
+        """The owner of the autopilot's link (the daemon's control loop) acts on its outputs
+        and arming state, and reports the outputs it counted through :meth:`note_outputs`.
         ``tlog``: a binary file to record into (see the class docstring), or None.
         ``uplink``: opens the autopilot's connection (an object with pymavlink's transport
         methods: ``fd``, ``recv``, ``write``, ``close``); None: pymavlink's transport for
@@ -161,7 +123,6 @@ class MavlinkLink:
             DialectError: the project's MAVLink dialect could not be generated or loaded.
         """
         self._config = config
-        self._sink = sink
         self._open_uplink = uplink
         self._autopilot = (config.autopilot_system_id, config.autopilot_component_id)
         self.stats = LinkStats()
@@ -186,11 +147,9 @@ class MavlinkLink:
             self._dialect.MAV_RESULT_FAILED,
             self._dialect.MAV_RESULT_UNSUPPORTED,
         )
-        # The same decoder the control loop uses (bridge.mavlink.actuators), fed the frame of
-        # each pymavlink message: one implementation of what an output message means.
+        # The control loop's decoder (bridge.mavlink.actuators): which messages are outputs.
         self._decoder = decoder_for(config.source, config.autopilot_system_id, config.component_id)
         self._output_name = self._decoder.name
-        self._armed_flag: int = self._dialect.MAV_MODE_FLAG_SAFETY_ARMED
         self._foreign_seen: set[tuple[int, int]] = set()
         self._boot_time = AutopilotBootTime()  # written by the autopilot's reader thread
         self._heartbeat = Heartbeat(
@@ -437,8 +396,6 @@ class MavlinkLink:
                 return False
             connection.conn = conn
             connection.parser = parser
-        if connection.is_autopilot:
-            self._decoder.reset()
         return True
 
     def _reopen(self, connection: Connection, reason: str) -> None:
@@ -497,7 +454,7 @@ class MavlinkLink:
         for msg in batch:
             try:
                 self._handle(connection, msg, now)
-            # A fault in the sink must not stop the reader: counted, and logged sparsely below.
+            # A fault in a handler must not stop the reader: counted, and logged sparsely below.
             except Exception:  # noqa: BLE001
                 counters.handler_errors += 1
                 log_sparsely(
@@ -552,17 +509,7 @@ class MavlinkLink:
         if not is_output:
             self._heartbeat.on_heartbeat(msg.autopilot, now)
             self._decoder.identify(msg.autopilot)
-            if self._sink is not None:
-                self._sink.on_armed(bool(msg.base_mode & self._armed_flag), now)
-            return
-        if self._sink is None:
-            return  # the link's owner acts on outputs and counts them (note_outputs)
-        decoded = self._decoder.decode(_frame_of(msg))
-        if decoded is not None:
-            self._heartbeat.note_output(now)
-            if decoded.armed is not None:
-                self._sink.on_armed(decoded.armed, now)
-            self._sink.on_actuators(decoded.values, now)
+        # The link's owner acts on outputs and arming, and counts the outputs (note_outputs).
 
     def _on_command(self, connection: Connection, msg: Any) -> None:
         """A COMMAND_LONG: pass it to the handlers if it is addressed to us, and answer."""

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 from bridge.config import BridgeConfig
 from bridge.errors import ConfigError
-from bridge.escs import registry
 
 IMMEDIATE_MAX_RATE_FACTOR = 2  # latency = "immediate" sends at most this many times the rate
 
@@ -49,7 +48,7 @@ def bus_load(config: BridgeConfig) -> BusLoad:
     rate_hz = config.rate_hz * (
         IMMEDIATE_MAX_RATE_FACTOR if config.output.latency == "immediate" else 1
     )
-    figures = registry.family(config.output.protocol).bus_figures(config, rate_hz)
+    figures = config.family.bus_figures(config.esc_setup, rate_hz)
     return BusLoad(
         config.bitrate,
         figures.command_bits_per_s,

@@ -11,13 +11,13 @@ Two ways in, one way out to the bus:
   while the autopilot is disarmed, hands a :class:`~bridge.output.mailbox.MotorTest` to the output
   loop, which sends it instead of the safe values until the time is up or the vehicle arms.
 
-Both build each tick's frames with :func:`test_frames` through the project's drivers
-(:func:`bridge.escs.drivers.make_driver`): the frames are exactly the daemon's, every value is
-limited to the protocol's range by the driver, and every ESC but the one under test gets its
+Both build each tick's frames with :func:`test_frames` through the family's driver
+(:meth:`~bridge.escs.family.EscFamily.driver`): the frames are exactly the daemon's, every value
+is limited to the protocol's range by the driver, and every ESC but the one under test gets its
 safe value (in the same frame, or on its own tick, as its family's driver addresses ESCs).
 
 A throttle is a fraction of the ESC's full range as its family defines it (its
-:meth:`~bridge.escs.family.EscFamily.describe_command` says what it is on the wire), never
+:meth:`~bridge.escs.family.EscDriver.describe_command` says what it is on the wire), never
 above the mixer output's ``max``. Nothing here prints; the CLI does.
 """
 
@@ -29,14 +29,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
 
-from bridge.escs import registry
 from bridge.mixing.definition import PWM_RANGE_US, MixerDefinition
 
 if TYPE_CHECKING:
     import can
 
     from bridge.config import BridgeConfig
-    from bridge.escs.drivers import EscDriver
+    from bridge.escs.family import EscDriver
 
 __all__ = [
     "SPIN_RAMP_S",
@@ -89,7 +88,7 @@ def test_frames(
 
 def command_text(config: BridgeConfig, fraction: float) -> str:
     """What ``fraction`` of the full range means on the wire for ``config``'s ESCs."""
-    return registry.family(config.output.protocol).describe_command(config, fraction)
+    return config.family.driver(config.esc_setup).describe_command(fraction)
 
 
 # -- esc spin: the request and the ramp (the spin itself: bridge/output/spin.py) -------------

@@ -41,7 +41,7 @@ import can
 from bridge.can_io import Receive, is_transient, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
-from bridge.escs.drivers import EscDriver, make_driver
+from bridge.escs.family import EscDriver
 from bridge.mavlink.relay import LoopEnd
 from bridge.output.autopilot_input import AutopilotInput, InputSetup
 from bridge.output.busload import IMMEDIATE_MAX_RATE_FACTOR
@@ -184,7 +184,7 @@ class OutputLoop:
         self._bus_receive = setup.bus_receive
         self._motor_tests = motor_tests
         self._stats = stats
-        driver = make_driver(config)
+        driver = config.family.driver(config.esc_setup)
         self._period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
         self._flush_ns = config.output.shutdown_flush_ms * 1_000_000
         self._inputs = ControlInputs()

@@ -28,8 +28,7 @@ import can
 from bridge.can_io import check_interface, is_transient, open_bus
 from bridge.config import BridgeConfig, with_mixer_esc_count
 from bridge.errors import ConfigError, LinkError
-from bridge.escs import registry
-from bridge.escs.drivers import flush_safe_values, make_driver
+from bridge.escs.drivers import flush_safe_values
 from bridge.mixing.definition import MixerDefinition
 from bridge.mixing.loader import load_mixer
 from bridge.output.busload import check_bus_load
@@ -76,7 +75,9 @@ class SpinPlan:
     @property
     def rate_hz(self) -> float:
         """Frames per second put on the bus: the daemon's command rate."""
-        return float(self.config.rate_hz * make_driver(self.config).ticks_per_cycle)
+        return float(
+            self.config.rate_hz * self.config.family.driver(self.config.esc_setup).ticks_per_cycle
+        )
 
 
 def plan_spin(config: BridgeConfig, request: SpinRequest) -> SpinPlan:
@@ -156,11 +157,11 @@ def spin(
     """
     stop = stop or threading.Event()
     config = plan.config
-    driver = make_driver(config)
+    driver = config.family.driver(config.esc_setup)
     period_ns = round(1e9 / (config.rate_hz * driver.ticks_per_cycle))
     bus = open_bus(config.can, config.bitrate)
     table = esc_table(config)
-    reader = CanReader(bus, table, registry.family(config.output.protocol))
+    reader = CanReader(bus, table, config.family)
     reader.start()
     sender = _Sender(bus)
     fractions = [0.0] * len(config.escs.ids)

@@ -1,7 +1,8 @@
 """A CAN capture as per-ESC time series, for ``esc-bridge plot``.
 
 The capture is decoded only through its family's :class:`~bridge.escs.family.EscFamily`
-(``owns``, ``decode``, ``telemetry``, ``commands_seen``), so every family plots alike. Per ESC:
+(``owns``, and its decoder's ``decode``, ``telemetry``, ``commands_seen``), so every family
+plots alike. Per ESC:
 the commands read back from the bus (one series per unit: a family may stop a motor with
 another command than the one it runs it with), rpm (erpm / pole pairs for ESCs that report
 erpm), supply and phase current, voltage, every temperature sensor it reports, and the runs of
@@ -199,8 +200,9 @@ def guess_family(
 ) -> EscFamily | None:
     """The family that reads the most of ``messages`` as telemetry or commands (the first in the
     registry's order on a tie), or None if none reads any. ``esc_nodes``: our ESCs' IDs, if
-    known (see :meth:`~bridge.escs.family.EscFamily.decode`)."""
+    known (see :meth:`~bridge.escs.family.EscDecoder.decode`)."""
     families = registry.families()
+    decoders = [family.decoder() for family in families]
     counts = [0] * len(families)
     for msg in messages:
         if isinstance(msg, BadLine):
@@ -208,12 +210,13 @@ def guess_family(
         for i, family in enumerate(families):
             if not family.owns(msg.arbitration_id):
                 continue
+            decoder = decoders[i]
             try:
-                frame = family.decode(msg, esc_nodes)
+                frame = decoder.decode(msg, esc_nodes)
             except FrameError:
                 continue
             if frame is not None and (
-                family.telemetry(frame) is not None or family.commands_seen(frame)
+                decoder.telemetry(frame) is not None or decoder.commands_seen(frame)
             ):
                 counts[i] += 1
     best = max(range(len(families)), key=lambda i: (counts[i], -i))
@@ -308,7 +311,8 @@ def capture_series(
 ) -> CaptureSeries:
     """Collect a capture's telemetry and commands through ``family``. ``pole_pairs``: one for
     every ESC, or by node ID (nodes not in it: :data:`DEFAULT_POLE_PAIRS`). ``esc_nodes``: our
-    ESCs' IDs, if known (see :meth:`~bridge.escs.family.EscFamily.decode`)."""
+    ESCs' IDs, if known (see :meth:`~bridge.escs.family.EscDecoder.decode`)."""
+    decoder = family.decoder()
     escs: dict[int, _Esc] = {}
     commands: dict[tuple[str, int], dict[str, _Points]] = {}
     stopped: dict[tuple[str, int], bool] = {}
@@ -324,14 +328,14 @@ def capture_series(
         first_s = t_s if first_s is None else first_s
         last_s = t_s
         try:
-            frame = family.decode(msg, esc_nodes) if family.owns(msg.arbitration_id) else None
+            frame = decoder.decode(msg, esc_nodes) if family.owns(msg.arbitration_id) else None
         except FrameError:
             counts["malformed"] += 1
             continue
         if frame is None:
             counts["other"] += 1
             continue
-        telemetry = family.telemetry(frame)
+        telemetry = decoder.telemetry(frame)
         if telemetry is not None:
             counts["telemetry"] += 1
             esc = escs.get(telemetry.node_id)
@@ -344,7 +348,7 @@ def capture_series(
                 esc = escs[telemetry.node_id] = _Esc(pairs)
             esc.add(t_s, telemetry)
             continue
-        seen = family.commands_seen(frame)
+        seen = decoder.commands_seen(frame)
         if not seen:
             counts["other"] += 1
             continue

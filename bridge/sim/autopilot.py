@@ -167,20 +167,6 @@ def outputs_at(t_s: float, airframe: Airframe) -> tuple[str, bool, list[int]]:
     return phase, True, pwm
 
 
-def phase_start(name: str) -> float:
-    """When the phase called ``name`` begins, in seconds from the start of the flight.
-
-    Raises:
-        ValueError: no such phase.
-    """
-    start = 0.0
-    for phase, duration in PHASES:
-        if phase == name:
-            return start
-        start += duration
-    raise ValueError(f"no phase {name!r}; expected one of {', '.join(p for p, _ in PHASES)}")
-
-
 def _tidy(x: float) -> float:
     return 0.0 if abs(x) < 1e-9 else round(x, 9)
 

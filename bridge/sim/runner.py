@@ -27,13 +27,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
-from typing import Final, Literal, TypeAlias, get_args
+from typing import Any, Final, Literal, TypeAlias, get_args
 
 import can
 
 from bridge.escs import registry
+from bridge.escs.family import EscSetup
 from bridge.sim.base import SimEsc
 from bridge.sim.motor import Battery, MotorParams
 
@@ -49,6 +50,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+Simulators: TypeAlias = Callable[[EscSetup[Any], MotorParams | None], list[SimEsc]]
+"""A family's ``sim.simulators`` (see :mod:`bridge.escs.family`)."""
 
 POLL_PERIOD_S: Final = 0.001
 """How often every ESC is polled (motor step, timeouts, telemetry due)."""
@@ -335,17 +339,18 @@ def make_escs(
     n: int,
     ids: Sequence[int] | None = None,
     *,
-    channels: Sequence[int] | None = None,
+    keys: Any = None,
     motor_params: MotorParams | None = None,
 ) -> list[SimEsc]:
-    """``n`` simulated ESCs of the family ``protocol``, each with a motor of its own.
+    """``n`` simulated ESCs of the family ``protocol``, each with a motor of its own, from the
+    family's simulator (its tool module ``sim.py``).
 
-    ``ids``: the ESCs' IDs on the bus (default 1..n). ``channels``: the throttle channel of
-    each, for a family that addresses ESCs by channel (default 1..n).
+    ``ids``: the ESCs' IDs on the bus (default 1..n). ``keys``: the family's ``[escs]`` keys
+    the simulated ESCs follow (such as throttle channels; default: the family's defaults).
 
     Raises:
-        ValueError: an unknown protocol, ``n`` < 1, lists whose length is not ``n``, IDs that
-            are not distinct or out of the family's range, or channels for a family without.
+        ValueError: an unknown protocol, ``n`` < 1, lists whose length is not ``n``, or IDs that
+            are not distinct or out of the family's range.
     """
     if protocol not in registry.names():
         raise ValueError(
@@ -362,4 +367,8 @@ def make_escs(
     allowed = family.node_ids
     if not all(i in allowed for i in ids):
         raise ValueError(f"ids={ids!r}: {protocol} IDs must be {allowed.start}..{allowed.stop - 1}")
-    return family.simulators(ids, channels, motor_params)
+    tool = registry.tool(protocol, "sim")
+    if tool is None:
+        raise ValueError(f"protocol={protocol!r}: the family has no simulator")
+    simulators: Simulators = tool.simulators
+    return simulators(EscSetup(tuple(ids), family.keys() if keys is None else keys), motor_params)

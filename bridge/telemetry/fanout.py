@@ -19,6 +19,7 @@ from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
 from bridge.escs import registry
+from bridge.escs.family import EscSetup
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
 from bridge.telemetry.payload import (
@@ -33,6 +34,9 @@ from bridge.telemetry.state import EscTable
 from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut
 
 log = logging.getLogger(__name__)
+
+LearnNodeIds = Callable[[can.BusABC, EscSetup[Any]], dict[int, int]]
+"""A family's ``setup.learn_node_ids`` (see :mod:`bridge.escs.family`)."""
 
 # The reader's socket buffer: ~0.8 s of a saturated 1 Mbit/s bus at ~800 B per queued frame (the
 # kernel caps it at net.core.rmem_max; raise that to use all of it).
@@ -85,7 +89,12 @@ class Fanout:
             LinkError: the bus cannot be opened, or the ESCs' answers are inconsistent.
         """
         config = self._config
-        learn = config.telemetry.learn_ids and self._family.learns_node_ids
+        # The family's ID learning, if it has any (its set-up tools, imported only to learn).
+        learning = (
+            registry.tool(config.output.protocol, "setup") if config.telemetry.learn_ids else None
+        )
+        learn_node_ids: LearnNodeIds | None = getattr(learning, "learn_node_ids", None)
+        learn = learn_node_ids is not None
         filters = self._filters()
         if self._shared_bus is None:
             if filters is None or learn:
@@ -102,8 +111,10 @@ class Fanout:
             bus: Any = self._own_bus
         else:
             bus = self._shared_bus
-        if learn:
-            self._learn_ids(self._own_bus if self._shared_bus is None else self._shared_bus())
+        if learn_node_ids is not None:
+            self._learn_ids(
+                learn_node_ids, self._own_bus if self._shared_bus is None else self._shared_bus()
+            )
             filters = self._filters()
             if self._own_bus is not None and filters:
                 apply_filters(self._own_bus, filters)
@@ -130,12 +141,12 @@ class Fanout:
             log.warning("CAN reader receives every frame: %s", exc)
             return None
 
-    def _learn_ids(self, bus: can.BusABC | None) -> None:
+    def _learn_ids(self, learn_node_ids: LearnNodeIds, bus: can.BusABC | None) -> None:
         title = self._family.title
         if bus is None:
             log.warning("cannot learn %s node IDs: the bus is not open", title)
             return
-        found = self._family.learn_node_ids(bus, self._config) or {}
+        found = learn_node_ids(bus, self._config.esc_setup)
         configured = self.table.node_ids
         ids = [found.get(i, node) for i, node in enumerate(configured)]
         missing = [i + 1 for i in range(len(configured)) if i not in found]

@@ -5,18 +5,17 @@ configuration (and runs, and is tested, without it)."""
 from __future__ import annotations
 
 from bridge.config import BridgeConfig
-from bridge.escs import registry
 from bridge.telemetry.state import EscTable, TelemetryLimits
 
 
 def esc_table(config: BridgeConfig, *, commanded: bool = True) -> EscTable:
     """The ESCs of ``config`` (its ESC lists already sized by ``with_esc_count``), with its
     ``[telemetry]`` timeout, pole pairs and limits; ``commanded``: as :class:`EscTable`."""
-    telemetry, family = config.telemetry, registry.family(config.output.protocol)
+    telemetry = config.telemetry
     return EscTable(
         config.escs.ids,
         pole_pairs=telemetry.pole_pairs,
-        channels=family.channels(config),
+        channels=config.esc_setup.channels,
         timeout_ms=telemetry.timeout_ms,
         limits=TelemetryLimits(
             max_temp_c=telemetry.max_temp_c,

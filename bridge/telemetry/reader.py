@@ -1,7 +1,8 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
-with it and hands the family's neutral telemetry, or the commands it read back, to the state.
+with the family's decoder of its own and hands the neutral telemetry, or the commands it read
+back, to the state.
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
@@ -100,7 +101,7 @@ class CanReader:
     ) -> None:
         self._bus_source = bus if callable(bus) else lambda: bus
         self._table = table
-        self._family = family
+        self._decoder = family.decoder()
         self._recorder = recorder
         self.stats = ReaderStats()
         # Drops of handles the reader read before the current one (a reopened shared handle
@@ -161,17 +162,17 @@ class CanReader:
         stats.frames += 1
         if self._recorder is not None:
             self._recorder(msg)
-        family = self._family
+        decoder = self._decoder
         try:
-            frame = family.decode(msg, self._table.node_set)
+            frame = decoder.decode(msg, self._table.node_set)
         except CodecError:
             stats.malformed += 1
-            self._table.count_error(family.node_of(msg), now_ns)
+            self._table.count_error(decoder.node_of(msg), now_ns)
             return
         if frame is None:
             return
-        telemetry = family.telemetry(frame)
+        telemetry = decoder.telemetry(frame)
         if telemetry is None:
-            self._table.note_commands(family.commands_seen(frame))
+            self._table.note_commands(decoder.commands_seen(frame))
         elif self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1

@@ -115,24 +115,11 @@ def test_a_connection_listed_twice_is_refused(url: str, outputs: list[str], same
     with pytest.raises(ConfigError) as caught:
         check_endpoints(config.mavlink)
     assert message == f"v.toml: {caught.value}"
-    link = MavlinkLink(config.mavlink, _Sink())
+    link = MavlinkLink(config.mavlink)
     with pytest.raises(ConfigError) as at_start:
         link.start()
     link.close()
     assert str(at_start.value) == str(caught.value)
-
-
-class _Sink:
-    """An input sink that keeps what it gets (nothing, in these tests)."""
-
-    def __init__(self) -> None:
-        self.got: list[tuple[str, object]] = []
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        self.got.append(("actuators", values))
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        self.got.append(("armed", armed))
 
 
 # -- inputs the source must carry ------------------------------------------------------------

@@ -9,9 +9,7 @@ fixtures with ``make_link = linkpeer.make_link`` (an import would shadow the arg
 
 from __future__ import annotations
 
-import math
 import socket
-import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -22,9 +20,7 @@ from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig
-from bridge.mavlink.actuators import INPUT_VECTOR_LEN
 from bridge.mavlink.link import MavlinkLink
-from bridge.mixing.definition import INPUT_NAMES
 
 KEY = bytes(range(32))
 
@@ -50,60 +46,9 @@ def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = TIME
         time.sleep(0.005)
 
 
-def assert_vector(values: list[float], expected: dict[str, float]) -> None:
-    """The named inputs (``ch1``.., ``roll``..) hold these values; every other one is NaN."""
-    assert len(values) == INPUT_VECTOR_LEN == 36
-    for name, value in zip(INPUT_NAMES, values, strict=True):
-        if name in expected:
-            assert value == pytest.approx(expected[name]), name
-        else:
-            assert math.isnan(value), f"{name} = {value}, expected NaN"
-
-
-class Sink:
-    """Records what the link delivers, in order; optionally raises on the first deliveries."""
-
-    def __init__(self, fail_first: int = 0) -> None:
-        self.events: list[tuple[str, Any, int]] = []
-        self._fail = fail_first
-        self._cond = threading.Condition()
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        with self._cond:
-            if self._fail:
-                self._fail -= 1
-                raise RuntimeError("sink fault")
-            self.events.append(("values", values, time_ns))
-            self._cond.notify_all()
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        with self._cond:
-            self.events.append(("armed", armed, time_ns))
-            self._cond.notify_all()
-
-    def vectors(self) -> list[list[float]]:
-        with self._cond:
-            return [e[1] for e in self.events if e[0] == "values"]
-
-    def armed(self) -> list[bool]:
-        with self._cond:
-            return [e[1] for e in self.events if e[0] == "armed"]
-
-    def wait_vectors(self, n: int) -> list[list[float]]:
-        with self._cond:
-            ok = self._cond.wait_for(
-                lambda: sum(e[0] == "values" for e in self.events) >= n, TIMEOUT_S
-            )
-        assert ok, f"expected {n} input vectors, got {len(self.vectors())}"
-        return self.vectors()
-
-    def wait_armed(self, n: int) -> list[bool]:
-        with self._cond:
-            ok = self._cond.wait_for(
-                lambda: sum(e[0] == "armed" for e in self.events) >= n, TIMEOUT_S
-            )
-        assert ok, f"expected {n} arming reports, got {self.armed()}"
-        return self.armed()
+def wait_messages(link: MavlinkLink, n: int, what: str = "") -> None:
+    """Wait until the link has read ``n`` messages from the autopilot's connection."""
+    wait_until(lambda: link.stats.messages >= n, what or f"{n} messages read by the link")
 
 
 class Peer:
@@ -184,7 +129,7 @@ def heartbeat(mav: Any, armed: bool) -> Any:
     )
 
 
-MakeLink = Callable[..., tuple[MavlinkLink, Sink]]
+MakeLink = Callable[..., MavlinkLink]
 
 
 MakePeer = Callable[..., Peer]
@@ -210,12 +155,11 @@ def make_link(make_peer: MakePeer) -> Iterator[MakeLink]:
     peers (requested here for that order), so that closing does not look like a lost link."""
     links: list[MavlinkLink] = []
 
-    def make(url: str, sink: Sink | None = None, **config: Any) -> tuple[MavlinkLink, Sink]:
-        sink = sink or Sink()
-        link = MavlinkLink(MavlinkConfig(url=url, **config), sink)
+    def make(url: str, **config: Any) -> MavlinkLink:
+        link = MavlinkLink(MavlinkConfig(url=url, **config))
         links.append(link)
         link.start()
-        return link, sink
+        return link
 
     yield make
     for link in links:

@@ -24,7 +24,11 @@ import can
 import pytest
 
 from bridge.config import MavlinkConfig
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.mavlink import load_dialect
 from bridge.mavlink.link import MavlinkLink
 from bridge.mavlink.telemetry_out import MavlinkTelemetry
@@ -136,14 +140,6 @@ class Gcs:
         self.sock.close()
 
 
-class NullSink:
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        pass
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        pass
-
-
 KINDS = ("ckesc_full", "ckesc_fault", "ckesc_rpm_only", "ft_reverse", "silent")
 
 
@@ -163,11 +159,11 @@ class Expected:
 
 
 def ingest(table: EscTable, msg: can.Message, now_ns: int) -> None:
-    family = registry.family_of(msg.arbitration_id)
-    assert family is not None
-    frame = family.decode(msg)
+    family = registry.families_of(msg.arbitration_id)[0]
+    decoder = family.decoder()  # CKESC and FT: one frame is one message
+    frame = decoder.decode(msg)
     assert frame is not None
-    telemetry = family.telemetry(frame)
+    telemetry = decoder.telemetry(frame)
     assert telemetry is not None
     assert table.ingest(telemetry, now_ns)
 
@@ -178,31 +174,35 @@ def feed(table: EscTable, i: int, now_ns: int) -> Expected:
     kind = KINDS[i % len(KINDS)]
 
     def ck(message: Any, at_ns: int = now_ns) -> None:
-        ingest(table, ckesc.encode(ckesc.CkescFrame(31, node, None, i % 32, message)), at_ns)
+        ingest(
+            table,
+            ckesc_codec.encode(ckesc_codec.CkescFrame(31, node, None, i % 32, message)),
+            at_ns,
+        )
 
-    status = ckesc.Msg1Status
+    status = ckesc_records.Msg1Status
     if kind == "ckesc_full":
         # 36 A for the 100 ms up to the second sample: 36 A * 0.1 s = 1.0 mAh.
-        ck(ckesc.Msg2(12.0 + 0.5 * i, 36.0, 40 + i), now_ns - 100 * MS)
-        ck(ckesc.Msg1(1000 * (i + 1), 1000, status.RUNNING))
-        ck(ckesc.Msg2(12.0 + 0.5 * i, 2.5 + i, 40 + i))
+        ck(ckesc_records.Msg2(12.0 + 0.5 * i, 36.0, 40 + i), now_ns - 100 * MS)
+        ck(ckesc_records.Msg1(1000 * (i + 1), 1000, status.RUNNING))
+        ck(ckesc_records.Msg2(12.0 + 0.5 * i, 2.5 + i, 40 + i))
         return Expected(True, 1000 * (i + 1), 12.0 + 0.5 * i, 2.5 + i, 40 + i, 0, 0, 3, 1.0)
     if kind == "ckesc_fault":
-        ck(ckesc.Msg1(500 + i, 1000, status.RUNNING | status.OVER_CURRENT))
-        ck(ckesc.Msg2(11.1, 20.0, 120))  # above the 100 °C limit: OVER_TEMPERATURE
+        ck(ckesc_records.Msg1(500 + i, 1000, status.RUNNING | status.OVER_CURRENT))
+        ck(ckesc_records.Msg2(11.1, 20.0, 120))  # above the 100 °C limit: OVER_TEMPERATURE
         table.count_error(node, now_ns)
         table.count_error(node, now_ns)
         return Expected(True, 500 + i, 11.1, 20.0, 120, 1 | 4, 2, 2, 0.0)
     if kind == "ckesc_rpm_only":
-        ck(ckesc.Msg1(1500 + i, 0, status(0)))
+        ck(ckesc_records.Msg1(1500 + i, 0, status(0)))
         return Expected(True, 1500 + i, None, None, None, 0, 0, 1, 0.0)
     if kind == "ft_reverse":
         for message in (
-            ft.RealtimeData0(3.5, 2.0 + i),
-            ft.RealtimeData1(-700 * (i + 1), -0.25),  # reverse: -100 * (i + 1) rpm
-            ft.RealtimeData2(30.4 + i, 60.0, 24.3),
+            ft_records.RealtimeData0(3.5, 2.0 + i),
+            ft_records.RealtimeData1(-700 * (i + 1), -0.25),  # reverse: -100 * (i + 1) rpm
+            ft_records.RealtimeData2(30.4 + i, 60.0, 24.3),
         ):
-            ingest(table, ft.encode(ft.FtFrame(node, message)), now_ns)
+            ingest(table, ft_codec.encode(ft_records.FtFrame(node, message)), now_ns)
         return Expected(True, -100 * (i + 1), 24.3, 2.0 + i, 30.4 + i, 0, 0, 3, 0.0)
     return Expected(False, None, None, None, None, 0, 0, 0, 0.0)
 
@@ -252,7 +252,7 @@ def make_bridge() -> Iterator[MakeBridge]:
             # sets are tested in test_link_sets.py).
             settings["autopilot_messages"] = MavlinkConfig(**settings).output_rates("")
         mavlink = MavlinkConfig(**settings)
-        link = MavlinkLink(mavlink, NullSink())
+        link = MavlinkLink(mavlink)
         closers.append(link.close)
         telemetry = MavlinkTelemetry(mavlink, link, table)
         closers.append(telemetry.close)

@@ -29,7 +29,7 @@ udp_address = linkpeer.udp_address
 def test_commands_addressed_to_the_bridge_reach_the_handler_and_are_acked(
     make_link: MakeLink, make_peer: MakePeer, udp_address: str
 ) -> None:
-    link, _ = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
+    link = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
     gcs = make_peer(f"udpout:{udp_address}", system=255, component=190)
     ours, to_all, to_vehicle = (1, 191), (0, 0), (1, 0)
 
@@ -84,7 +84,7 @@ def test_commands_addressed_to_the_bridge_reach_the_handler_and_are_acked(
 def test_several_handlers_are_asked_in_order_and_the_first_answer_wins(
     make_link: MakeLink, make_peer: MakePeer, udp_address: str
 ) -> None:
-    link, _ = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
+    link = make_link(f"udpin:{udp_address}", stream_rate_hz=0.0)
     gcs = make_peer(f"udpout:{udp_address}", system=255, component=190)
     asked: list[tuple[str, int]] = []
 
@@ -137,7 +137,7 @@ def test_a_command_from_an_output_is_answered_there_only(
     gcs_address = f"127.0.0.1:{free_port()}"
     autopilot = make_peer(f"udpin:{autopilot_address}")
     gcs = make_peer(f"udpin:{gcs_address}", system=255, component=190)
-    link, _ = make_link(
+    link = make_link(
         f"udpout:{autopilot_address}", outputs=(f"udpout:{gcs_address}",), stream_rate_hz=0.0
     )
     link.add_command_handler(lambda msg: ACCEPTED)

@@ -7,7 +7,7 @@ import threading
 
 import linkpeer
 import pytest
-from linkpeer import Sink, free_port
+from linkpeer import free_port
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError
@@ -62,7 +62,7 @@ def test_parse_url_accepts_the_documented_forms(url: str, expected: Endpoint) ->
 )
 def test_malformed_url_is_a_config_error_naming_it(url: str) -> None:
     with pytest.raises(ConfigError) as raised:
-        MavlinkLink(MavlinkConfig(url=url), Sink()).start()
+        MavlinkLink(MavlinkConfig(url=url)).start()
     assert repr(url) in str(raised.value)
     assert ACCEPTED_URL_FORMS in str(raised.value)
 
@@ -80,9 +80,7 @@ def test_bad_outputs_are_config_errors_before_anything_opens(
     outputs: tuple[str, ...], problem: str
 ) -> None:
     address = ("127.0.0.1", free_port(socket.SOCK_STREAM))
-    link = MavlinkLink(
-        MavlinkConfig(url=f"tcpin:{address[0]}:{address[1]}", outputs=outputs), Sink()
-    )
+    link = MavlinkLink(MavlinkConfig(url=f"tcpin:{address[0]}:{address[1]}", outputs=outputs))
     with pytest.raises(ConfigError) as raised:
         link.start()
     message = str(raised.value)
@@ -98,4 +96,4 @@ def test_bad_outputs_are_config_errors_before_anything_opens(
 def test_an_output_repeating_the_autopilot_url_is_refused(udp_address: str) -> None:
     url = f"udpin:{udp_address}"
     with pytest.raises(ConfigError, match=r"same connection as \[mavlink\] url"):
-        MavlinkLink(MavlinkConfig(url=url, outputs=(url,)), Sink()).start()
+        MavlinkLink(MavlinkConfig(url=url, outputs=(url,))).start()

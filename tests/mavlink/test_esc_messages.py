@@ -38,7 +38,7 @@ from telemetrypeer import (
 )
 
 from bridge.config import MavlinkConfig
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.mavlink.esc_messages import (
     AUTOPILOT_SETS,
     OTHER_AUTOPILOT_SET,
@@ -289,7 +289,9 @@ def test_esc_goes_offline_after_the_timeout_and_comes_back(make_bridge: MakeBrid
         assert time.monotonic() < deadline, "ESC 1 never went offline"
         ingest(
             table,
-            ckesc.encode(ckesc.CkescFrame(31, 2, None, 0, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+            codec.encode(
+                codec.CkescFrame(31, 2, None, 0, records.Msg1(7, 0, records.Msg1Status(0)))
+            ),
             now,
         )
         now = time.monotonic_ns()
@@ -299,7 +301,7 @@ def test_esc_goes_offline_after_the_timeout_and_comes_back(make_bridge: MakeBrid
     since = gcs.count()
     ingest(
         table,
-        ckesc.encode(ckesc.CkescFrame(31, 2, None, 0, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+        codec.encode(codec.CkescFrame(31, 2, None, 0, records.Msg1(7, 0, records.Msg1Status(0)))),
         now,
     )
     offline_status = gcs.wait_for("ESC_STATUS", since=since)
@@ -318,12 +320,14 @@ def test_esc_goes_offline_after_the_timeout_and_comes_back(make_bridge: MakeBrid
     now = time.monotonic_ns()
     ingest(
         table,
-        ckesc.encode(ckesc.CkescFrame(31, 1, None, 1, ckesc.Msg1(4321, 0, ckesc.Msg1Status(0)))),
+        codec.encode(
+            codec.CkescFrame(31, 1, None, 1, records.Msg1(4321, 0, records.Msg1Status(0)))
+        ),
         now,
     )
     ingest(
         table,
-        ckesc.encode(ckesc.CkescFrame(31, 2, None, 1, ckesc.Msg1(7, 0, ckesc.Msg1Status(0)))),
+        codec.encode(codec.CkescFrame(31, 2, None, 1, records.Msg1(7, 0, records.Msg1Status(0)))),
         now,
     )
     since = gcs.count()

@@ -10,7 +10,7 @@ from typing import Any
 
 import linkpeer
 import pytest
-from linkpeer import MakeLink, MakePeer, Peer, Sink, free_port, heartbeat, servo
+from linkpeer import MakeLink, MakePeer, Peer, free_port, heartbeat, servo
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig
@@ -36,16 +36,25 @@ def ack(peer: Peer, result: int, target: tuple[int, int] = (1, 191)) -> None:
     )
 
 
-def stream(peer: Peer, seconds: float, rate_hz: float) -> list[tuple[float, Any]]:
+def stream(
+    peer: Peer, seconds: float, rate_hz: float, link: MavlinkLink
+) -> list[tuple[float, Any]]:
     """Stream SERVO_OUTPUT_RAW and a HEARTBEAT a second at about ``rate_hz`` for ``seconds``;
-    what the peer received meanwhile."""
+    what the peer received meanwhile. Meanwhile, as the control loop that owns the link does,
+    tell ``link`` every 0.1 s how many outputs it read (the loop counts what it decodes)."""
     received: list[tuple[float, Any]] = []
-    start = next_beat = time.monotonic()
+    start = next_beat = next_note = time.monotonic()
     sent = 0
+    beats = link.stats.messages
     while (now := time.monotonic()) < start + seconds:
         if now >= next_beat:
             peer.send(heartbeat(peer.mav, armed=False))
+            beats += 1
             next_beat += 1.0
+        if now >= next_note:
+            outputs_read = link.stats.messages - beats
+            link.note_outputs(outputs_read, time.monotonic_ns())
+            next_note += 0.1
         peer.send(servo(peer.mav, 0, [1100]))
         sent += 1
         received += peer.drain()
@@ -59,7 +68,7 @@ def test_heartbeat_and_stream_requests_reach_the_autopilot_until_outputs_flow(
     url = f"127.0.0.1:{free_port()}"
     autopilot = make_peer(f"udpin:{url}")
     # Asked at 50 Hz, so that a test process on a busy machine can keep up with it.
-    link, sink = make_link(
+    link = make_link(
         f"udpout:{url}", heartbeat_hz=5.0, stream_rate_hz=50.0, autopilot_heartbeat_hz=0.0
     )
 
@@ -81,8 +90,8 @@ def test_heartbeat_and_stream_requests_reach_the_autopilot_until_outputs_flow(
 
     # A stream at the rate asked: no more requests, whether answered or not.
     start = time.monotonic()
-    flowing = stream(autopilot, 2.6, rate_hz=60)
-    sent_hz = len(sink.vectors()) / (time.monotonic() - start)
+    flowing = stream(autopilot, 2.6, rate_hz=60, link=link)
+    sent_hz = link.stats.outputs / (time.monotonic() - start)
     assert sent_hz > 40, "the test could not stream fast enough to mean anything"
     assert not [r for r in interval_requests(flowing) if r[0] > start + 1.2]
     assert link.stats.output_rate_hz == pytest.approx(sent_hz, rel=0.25)
@@ -99,15 +108,15 @@ def test_a_slow_stream_is_asked_again_until_accepted_then_taken_as_the_limit(
     ACCEPTED, what arrives is its best (PX4's SIH sends ~124 Hz when asked 200)."""
     url = f"127.0.0.1:{free_port()}"
     autopilot = make_peer(f"udpin:{url}")
-    make_link(f"udpout:{url}", stream_rate_hz=200.0, autopilot_heartbeat_hz=0.0)
+    link = make_link(f"udpout:{url}", stream_rate_hz=200.0, autopilot_heartbeat_hz=0.0)
 
-    unanswered = interval_requests(stream(autopilot, 2.5, rate_hz=40))
+    unanswered = interval_requests(stream(autopilot, 2.5, rate_hz=40, link=link))
     assert len(unanswered) >= 2, "a slow stream, no answer: asked again every second"
     assert {rate for _, _, rate in unanswered} == {200.0}
 
     with caplog.at_level(logging.INFO, logger="bridge"):
         ack(autopilot, mavlink2.MAV_RESULT_ACCEPTED)
-        answered = interval_requests(stream(autopilot, 3.0, rate_hz=40))
+        answered = interval_requests(stream(autopilot, 3.0, rate_hz=40, link=link))
     assert len(answered) <= 1, f"asked on after ACCEPTED: {answered}"  # one already due
     assert "ACCEPTED SERVO_OUTPUT_RAW at 200 Hz" in caplog.text
     assert "taking that as its limit" in caplog.text
@@ -137,15 +146,15 @@ def test_the_heartbeat_is_asked_for_too_and_acks_to_others_are_not_ours(
 ) -> None:
     url = f"127.0.0.1:{free_port()}"
     autopilot = make_peer(f"udpin:{url}")
-    make_link(f"udpout:{url}", stream_rate_hz=50.0, autopilot_heartbeat_hz=20.0)
+    link = make_link(f"udpout:{url}", stream_rate_hz=50.0, autopilot_heartbeat_hz=20.0)
 
-    requests = interval_requests(stream(autopilot, 2.7, rate_hz=60))
+    requests = interval_requests(stream(autopilot, 2.7, rate_hz=60, link=link))
     heartbeat_requests = [r for r in requests if r[1] == mavlink2.MAVLINK_MSG_ID_HEARTBEAT]
     assert heartbeat_requests, f"no HEARTBEAT request in {requests}"
     assert {rate for _, _, rate in heartbeat_requests} == {20.0}
     # Refusals meant for a ground station's request (forwarded by the autopilot) change nothing.
     ack(autopilot, mavlink2.MAV_RESULT_DENIED, target=(255, 190))
-    later = interval_requests(stream(autopilot, 2.2, rate_hz=60))
+    later = interval_requests(stream(autopilot, 2.2, rate_hz=60, link=link))
     assert later and {rate for _, _, rate in later} == {20.0}
 
 
@@ -155,14 +164,13 @@ def test_a_stream_too_slow_for_the_input_timeout_is_reported(
     url = f"127.0.0.1:{free_port()}"
     link = MavlinkLink(
         MavlinkConfig(url=f"udpin:{url}", stream_rate_hz=0.0, autopilot_heartbeat_hz=0.0),
-        Sink(),
         needed_rate_hz=20.0,
     )
     link.start()
     try:
         autopilot = make_peer(f"udpout:{url}")
         with caplog.at_level(logging.INFO, logger="bridge"):
-            stream(autopilot, 2.5, rate_hz=10)
+            stream(autopilot, 2.5, rate_hz=10, link=link)
     finally:
         link.close()
     assert "arrives at 10 Hz, too slow for input_timeout_ms (it needs 20 Hz or more)" in (

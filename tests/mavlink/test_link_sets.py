@@ -26,7 +26,7 @@ import pytest
 from conftest import ESC_BRIDGE, Autopilot, Daemon, MavlinkReceiver, free_port, multicast_bus
 from pymavlink import mavutil
 
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.mavlink import load_dialect
 from bridge.mavlink.esc_messages import AUTOPILOT_SETS, OTHER_AUTOPILOT_SET, Family, bytes_per_s
 
@@ -58,18 +58,18 @@ class Escs:
 
     def _run(self) -> None:
         tick = 0
-        status = ckesc.Msg1Status.RUNNING
+        status = records.Msg1Status.RUNNING
         while not self._stop.is_set():
             for node in range(1, self.n + 1):
                 for message in (
-                    ckesc.Msg1(1000 * node, 100 * node, status),
-                    ckesc.Msg2(20 + node / 100, float(node), 30 + node),
-                    ckesc.Msg3(30 + node, 20 + node, 40 + node, 25 + node),
+                    records.Msg1(1000 * node, 100 * node, status),
+                    records.Msg2(20 + node / 100, float(node), 30 + node),
+                    records.Msg3(30 + node, 20 + node, 40 + node, 25 + node),
                 ):
-                    frame = ckesc.CkescFrame(
-                        ckesc.default_priority(message), node, None, tick % 32, message
+                    frame = codec.CkescFrame(
+                        codec.default_priority(message), node, None, tick % 32, message
                     )
-                    self.bus.send(ckesc.encode(frame))
+                    self.bus.send(codec.encode(frame))
             tick += 1
             time.sleep(0.02)
 

@@ -21,7 +21,6 @@ from telemetrypeer import (
     OUR_ID,
     Gcs,
     MakeBridge,
-    NullSink,
     check_esc_info,
     check_esc_status,
     check_esc_telemetry,
@@ -228,7 +227,7 @@ def test_tlog_holds_telemetry_readable_with_our_dialect(tmp_path: Path) -> None:
     )
     try:
         with path.open("wb") as tlog:
-            link = MavlinkLink(mavlink, NullSink(), tlog=tlog)
+            link = MavlinkLink(mavlink, tlog=tlog)
             with link, MavlinkTelemetry(mavlink, link, table) as telemetry:
                 link.start()
                 telemetry.start()

@@ -14,12 +14,12 @@ from linkpeer import (
     USER_1,
     MakeLink,
     MakePeer,
-    Sink,
     command,
     free_port,
     heartbeat,
     receive_until,
     servo,
+    wait_messages,
 )
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -39,12 +39,10 @@ def test_tlog_records_everything_received_and_sent_once(
     gcs = make_peer(f"udpin:{gcs_address}", system=255, component=190)
     path = tmp_path / "bridge.tlog"
     with path.open("wb") as tlog:
-        sink = Sink()
         link = MavlinkLink(
             MavlinkConfig(
                 url=f"udpin:{udp_address}", outputs=(f"udpout:{gcs_address}",), stream_rate_hz=0
             ),
-            sink,
             tlog=tlog,
         )
         with link:
@@ -53,7 +51,7 @@ def test_tlog_records_everything_received_and_sent_once(
             autopilot = make_peer(f"udpout:{udp_address}")
             autopilot.send(heartbeat(autopilot.mav, armed=True))
             autopilot.send(servo(autopilot.mav, 0, [1234]))
-            sink.wait_vectors(1)
+            wait_messages(link, 2, "the autopilot's HEARTBEAT and output")
             gcs.wait_for("HEARTBEAT")
             command(gcs, USER_1, (1, 191))
             receive_until(gcs, lambda m: m.get_type() == "COMMAND_ACK")
@@ -70,7 +68,7 @@ def test_tlog_records_everything_received_and_sent_once(
                 autopilot.send(servo(autopilot.mav, 0, [pwm]))
             for thread in threads:
                 thread.join()
-            sink.wait_vectors(201)
+            wait_messages(link, 202, "every output")
             end_s = time.time()
 
     recording: Any = mavutil.mavlink_connection(str(path))

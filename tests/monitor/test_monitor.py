@@ -26,8 +26,11 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, can_args, free_port, multicast
 from bridge.cli import main
 from bridge.config import ZenohConfig
 from bridge.errors import PayloadError
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import codec as dronecan_codec
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.monitor import (
     VehicleState,
     failure_names,
@@ -84,11 +87,11 @@ def monitor(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess[
 # CKESC node -> (rpm, throttle 0..2000, status, volts, amps, MOS, capacitor, motor, MCU °C)
 CKESC_ESCS = {
     # ESC 1 reports "no command" (its comms fault), as every CKESC does with no bridge running.
-    1: (1100, 500, ckesc.Msg1Status.COMMS_FAULT, 24.25, 2.5, 41, 31, 51, 46),
+    1: (1100, 500, ckesc_records.Msg1Status.COMMS_FAULT, 24.25, 2.5, 41, 31, 51, 46),
     2: (
         1200,
         1000,
-        ckesc.Msg1Status.RUNNING | ckesc.Msg1Status.OVER_TEMPERATURE,
+        ckesc_records.Msg1Status.RUNNING | ckesc_records.Msg1Status.OVER_TEMPERATURE,
         24.5,
         5.0,
         42,
@@ -96,7 +99,7 @@ CKESC_ESCS = {
         52,
         47,
     ),
-    3: (1300, 1500, ckesc.Msg1Status.UNDER_VOLTAGE, 24.75, 7.5, 43, 33, 53, 48),
+    3: (1300, 1500, ckesc_records.Msg1Status.UNDER_VOLTAGE, 24.75, 7.5, 43, 33, 53, 48),
 }
 # FT ESC ID -> (erpm, duty, battery A, motor A, MOSFET °C, motor °C, volts)
 FT_ESCS = {
@@ -118,13 +121,13 @@ def ckesc_frames(transfer_id: int) -> list[can.Message]:
     frames = []
     for node, (rpm, thr, status, volts, amps, mos, cap, motor, mcu) in CKESC_ESCS.items():
         for message in (
-            ckesc.Msg1(rpm, thr, status),
-            ckesc.Msg2(volts, amps, mos),
-            ckesc.Msg3(mos, cap, motor, mcu),
+            ckesc_records.Msg1(rpm, thr, status),
+            ckesc_records.Msg2(volts, amps, mos),
+            ckesc_records.Msg3(mos, cap, motor, mcu),
         ):
-            priority = ckesc.default_priority(message)
-            frame = ckesc.CkescFrame(priority, node, None, transfer_id, message)
-            frames.append(ckesc.encode(frame))
+            priority = ckesc_codec.default_priority(message)
+            frame = ckesc_codec.CkescFrame(priority, node, None, transfer_id, message)
+            frames.append(ckesc_codec.encode(frame))
     return frames
 
 
@@ -132,11 +135,11 @@ def ft_frames(transfer_id: int) -> list[can.Message]:
     frames = []
     for esc_id, (erpm, duty, battery_a, motor_a, mos, motor, volts) in FT_ESCS.items():
         for message in (
-            ft.RealtimeData0(motor_a, battery_a),
-            ft.RealtimeData1(erpm, duty),
-            ft.RealtimeData2(mos, motor, volts),
+            ft_records.RealtimeData0(motor_a, battery_a),
+            ft_records.RealtimeData1(erpm, duty),
+            ft_records.RealtimeData2(mos, motor, volts),
         ):
-            frames.append(ft.encode(ft.FtFrame(esc_id, message)))
+            frames.append(ft_codec.encode(ft_records.FtFrame(esc_id, message)))
     return frames
 
 

@@ -16,7 +16,7 @@ from conftest import Autopilot, free_port
 
 from bridge.config import build_config
 from bridge.daemon.preflight import plan
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.escs.ckesc.driver import CkescDriver
 from bridge.mavlink.relay import relay_pair
 from bridge.output.autopilot_input import InputSetup
@@ -35,8 +35,8 @@ INPUT_TIMEOUT_MS = 400  # the default 100 ms, widened for a loaded test machine
 def _throttles(observer: can.BusABC, count: int) -> list[tuple[int, ...]]:
     seen: list[tuple[int, ...]] = []
     while len(seen) < count and (msg := observer.recv(1.0)) is not None:
-        frame = ckesc.decode(msg)
-        assert frame is not None and isinstance(frame.message, ckesc.RawCommand12b)
+        frame = codec.decode(msg)
+        assert frame is not None and isinstance(frame.message, records.RawCommand12b)
         seen.append(frame.message.throttles)
     return seen
 
@@ -312,8 +312,8 @@ def test_a_fault_in_a_tick_sends_safe_values_and_the_next_tick_runs_again() -> N
 
     def throttles(fractions: list[float]) -> tuple[int, ...]:
         frames = selector.select(0, now, fractions, 0.0025)
-        decoded = ckesc.decode(frames[0])
-        assert decoded is not None and isinstance(decoded.message, ckesc.RawCommand12b)
+        decoded = codec.decode(frames[0])
+        assert decoded is not None and isinstance(decoded.message, records.RawCommand12b)
         return decoded.message.throttles
 
     assert throttles(good) == (1000, 1000, 1000, 1000)

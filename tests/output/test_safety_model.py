@@ -28,7 +28,7 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.escs.ckesc.driver import CkescDriver
 from bridge.output.mailbox import MotorTest
 from bridge.output.output_loop import CommandSelector
@@ -39,7 +39,7 @@ N = 4
 MS = 1_000_000
 INPUT_TIMEOUT_NS = 100 * MS
 ARMING_TIMEOUT_NS = 3000 * MS
-FULL = ckesc.THROTTLE_MAX
+FULL = records.THROTTLE_MAX
 
 
 @dataclass
@@ -168,8 +168,8 @@ class Harness:
         self.tick += 1
         throttles: list[int] = []
         for frame in frames:
-            decoded = ckesc.decode(frame)
-            assert decoded is not None and isinstance(decoded.message, ckesc.RawCommand12b)
+            decoded = codec.decode(frame)
+            assert decoded is not None and isinstance(decoded.message, records.RawCommand12b)
             throttles.extend(decoded.message.throttles)
         expected = model.allowed()
         assert throttles[:N] == expected, (

@@ -17,7 +17,10 @@ import pytest
 from conftest import ESC_BRIDGE, Observer, can_args, multicast_bus
 
 from bridge.config import build_config
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.output.motor_test import SpinRequest
 from bridge.output.spin import plan_spin
 from bridge.sim.runner import Simulator, make_escs
@@ -62,8 +65,8 @@ def spin(*args: str) -> subprocess.Popen[str]:
 
 
 def throttles(msg: can.Message) -> tuple[int, ...] | None:
-    frame = ckesc.decode(msg)
-    if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+    frame = ckesc_codec.decode(msg)
+    if frame is None or not isinstance(frame.message, ckesc_records.RawCommand12b):
         return None
     return frame.message.throttles
 
@@ -126,20 +129,26 @@ def test_ft_spin_commands_one_esc_in_its_mode_and_brakes_the_others(
     assert "(FT ESC 23, current mode)" in out and "FT current 4.00 A" in out
     assert rpm[2] > 1000 and rpm[0] == rpm[1] == rpm[3] == 0
     time.sleep(0.2)
-    telemetry = (ft.RealtimeData0, ft.RealtimeData1, ft.RealtimeData2)  # from the simulator
+    telemetry = (
+        ft_records.RealtimeData0,
+        ft_records.RealtimeData1,
+        ft_records.RealtimeData2,
+    )  # from the simulator
     commands = [
         (f.esc_id, f.message)
         for _, m in observer.frames
-        if (f := ft.decode(m)) is not None and not isinstance(f.message, telemetry)
+        if (f := ft_codec.decode(m)) is not None and not isinstance(f.message, telemetry)
     ]
-    spun = [m.current_a for esc, m in commands if esc == 23 and isinstance(m, ft.SetCurrent)]
+    spun = [
+        m.current_a for esc, m in commands if esc == 23 and isinstance(m, ft_records.SetCurrent)
+    ]
     assert max(spun) == pytest.approx(4.0) and spun[0] < 0.5 and spun[-1] < 0.5  # the ramps
     others = {(esc, type(m), getattr(m, "current_a", None)) for esc, m in commands if esc != 23}
-    assert others == {(esc, ft.SetCurrentBrake, 2.0) for esc in (21, 22, 24)}
-    last = max(i for i, (esc, m) in enumerate(commands) if isinstance(m, ft.SetCurrent))
+    assert others == {(esc, ft_records.SetCurrentBrake, 2.0) for esc in (21, 22, 24)}
+    last = max(i for i, (esc, m) in enumerate(commands) if isinstance(m, ft_records.SetCurrent))
     flush = commands[last + 1 :]  # the safe values: the brake, for every ESC
     assert {(esc, type(m)) for esc, m in flush} == {
-        (e, ft.SetCurrentBrake) for e in (21, 22, 23, 24)
+        (e, ft_records.SetCurrentBrake) for e in (21, 22, 23, 24)
     }
     assert 60 <= len(flush) <= 100  # 200 ms at 4 x 100 frames/s
 
@@ -168,8 +177,8 @@ def test_ft_spin_with_no_ft_esc_says_nothing_answered(
 
 
 def ft_current(msg: can.Message) -> tuple[int, float] | None:
-    frame = ft.decode(msg)
-    if frame is None or not isinstance(frame.message, ft.SetCurrent):
+    frame = ft_codec.decode(msg)
+    if frame is None or not isinstance(frame.message, ft_records.SetCurrent):
         return None
     return frame.esc_id, frame.message.current_a
 

@@ -10,24 +10,25 @@ from test_series import T0, ck, throttles
 
 from bridge.capture import BadLine
 from bridge.errors import ConfigError
-from bridge.escs import ckesc, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import records
 from bridge.plot.flight import Flight, flight
 from bridge.plot.page import page_html
 from bridge.plot.recording import Heartbeat, StatusText, TlogEvents
 from bridge.plot.series import capture_series
 from bridge.plot.spans import ARMED, FAILSAFE, STOPPED_ARMED
 
-S = ckesc.Msg1Status
+S = records.Msg1Status
 
 
 def a_flight() -> Flight:
     messages: list[can.Message | BadLine] = [
         throttles(1.0, 0),
-        ck(1.1, 1, ckesc.Msg1(0, 0, S.RUNNING)),
+        ck(1.1, 1, records.Msg1(0, 0, S.RUNNING)),
         throttles(2.0, 600),
-        ck(2.1, 1, ckesc.Msg1(4000, 600, S.RUNNING | S.OVER_CURRENT)),
+        ck(2.1, 1, records.Msg1(4000, 600, S.RUNNING | S.OVER_CURRENT)),
         throttles(5.0, 0),  # failsafe: stopped while armed
-        ck(5.1, 1, ckesc.Msg1(0, 0, S.RUNNING)),
+        ck(5.1, 1, records.Msg1(0, 0, S.RUNNING)),
         throttles(6.0, 600),
         BadLine(3, "x", "y"),
     ]

@@ -10,11 +10,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import phase_start
 
 from bridge.plot.flight import load_flight
 from bridge.plot.recording import find_recordings
 from bridge.plot.spans import ARMED
-from bridge.sim.autopilot import phase_start
 
 mpl_image = pytest.importorskip(
     "matplotlib.image", reason="matplotlib (the plot extra, in the test extra) is not installed"

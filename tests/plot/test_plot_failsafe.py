@@ -15,7 +15,7 @@ import pytest
 from conftest import ESC_BRIDGE, Autopilot, Daemon, Observer, can_args
 
 from bridge.errors import FrameError
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec
 from bridge.escs.family import FAILURE_GENERIC, FAILURE_OVER_TEMPERATURE
 from bridge.plot.flight import load_flight
 from bridge.plot.recording import find_recordings
@@ -32,7 +32,7 @@ FAULT_AT_S = 3.0
 def spinning(msg: can.Message) -> bool:
     """A CKESC throttle command with every channel above zero."""
     try:
-        frame = ckesc.decode(msg)
+        frame = codec.decode(msg)
     except FrameError:
         return False
     message = None if frame is None else frame.message

@@ -9,8 +9,12 @@ import pytest
 
 from bridge.capture import BadLine
 from bridge.errors import ConfigError
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.family import FAILURE_GENERIC, FAILURE_OVER_TEMPERATURE, CommandSeen
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.plot.series import (
     EscSeries,
     Series,
@@ -22,7 +26,7 @@ from bridge.plot.series import (
     thin,
 )
 
-S = ckesc.Msg1Status
+S = ckesc_records.Msg1Status
 T0 = 1_790_000_000.0  # wall-clock seconds, as a capture stamps its frames
 
 
@@ -31,36 +35,36 @@ def at(t_s: float, msg: can.Message) -> can.Message:
     return msg
 
 
-def ck(t_s: float, node: int, message: ckesc.CkescMessage) -> can.Message:
-    frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, 0, message)
-    return at(t_s, ckesc.encode(frame))
+def ck(t_s: float, node: int, message: ckesc_records.CkescMessage) -> can.Message:
+    frame = ckesc_codec.CkescFrame(ckesc_codec.default_priority(message), node, None, 0, message)
+    return at(t_s, ckesc_codec.encode(frame))
 
 
 def throttles(t_s: float, *values: int) -> can.Message:
-    return at(t_s, ckesc.encode_raw_14b(list(values), 0))
+    return at(t_s, ckesc_codec.encode_raw_14b(list(values), 0))
 
 
-def ft_frame(t_s: float, esc_id: int, message: ft.FtMessage) -> can.Message:
-    return at(t_s, ft.encode(ft.FtFrame(esc_id, message)))
+def ft_frame(t_s: float, esc_id: int, message: ft_records.FtMessage) -> can.Message:
+    return at(t_s, ft_codec.encode(ft_records.FtFrame(esc_id, message)))
 
 
-def ft_command(t_s: float, esc_id: int, command: ft.Command, value: float) -> can.Message:
-    return at(t_s, ft.encode_command(esc_id, command, value))
+def ft_command(t_s: float, esc_id: int, command: ft_records.Command, value: float) -> can.Message:
+    return at(t_s, ft_codec.encode_command(esc_id, command, value))
 
 
 def ckesc_capture() -> list[can.Message | BadLine]:
     return [
         throttles(0.0, 0, 0),
-        ck(0.05, 1, ckesc.Msg1(0, 0, S.RUNNING)),
-        ck(0.06, 2, ckesc.Msg1(0, 0, S.RUNNING)),
+        ck(0.05, 1, ckesc_records.Msg1(0, 0, S.RUNNING)),
+        ck(0.06, 2, ckesc_records.Msg1(0, 0, S.RUNNING)),
         throttles(1.0, 400, 500),
-        ck(1.05, 1, ckesc.Msg1(3000, 400, S.RUNNING)),
-        ck(1.06, 1, ckesc.Msg2(16.4, 3.25, 41)),
-        ck(1.07, 2, ckesc.Msg1(3500, 500, S.RUNNING | S.OVER_TEMPERATURE)),
+        ck(1.05, 1, ckesc_records.Msg1(3000, 400, S.RUNNING)),
+        ck(1.06, 1, ckesc_records.Msg2(16.4, 3.25, 41)),
+        ck(1.07, 2, ckesc_records.Msg1(3500, 500, S.RUNNING | S.OVER_TEMPERATURE)),
         BadLine(9, "garbage", "ValueError: no"),
-        ck(2.0, 2, ckesc.Msg1(3400, 500, S.RUNNING | S.OVER_TEMPERATURE | S.UNDER_VOLTAGE)),
+        ck(2.0, 2, ckesc_records.Msg1(3400, 500, S.RUNNING | S.OVER_TEMPERATURE | S.UNDER_VOLTAGE)),
         throttles(2.5, 0, 0),  # every channel stopped
-        ck(3.0, 2, ckesc.Msg1(0, 0, S.RUNNING)),
+        ck(3.0, 2, ckesc_records.Msg1(0, 0, S.RUNNING)),
         throttles(3.5, 300, 300),
         at(3.6, can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False)),
     ]
@@ -116,13 +120,15 @@ def test_channels_go_to_the_escs_in_order_or_as_given() -> None:
 def test_an_ft_capture_reads_erpm_as_rpm_and_keeps_each_command_unit_apart() -> None:
     family = registry.family("ft")
     messages: list[can.Message | BadLine] = [
-        ft_command(0.0, 3, ft.Command.SET_CURRENT_BRAKE_CRC16, 2.0),
-        ft_frame(0.01, 3, ft.RealtimeData1(erpm=-7000, duty=-0.1)),
-        ft_command(1.0, 3, ft.Command.SET_CURRENT_GEAR_CRC16, 4.5),
-        ft_frame(1.01, 3, ft.RealtimeData1(erpm=21000, duty=0.3)),
-        ft_frame(1.02, 3, ft.RealtimeData0(motor_current_a=9.5, battery_current_a=4.25)),
-        ft_frame(1.03, 3, ft.RealtimeData2(45.0, 51.5, 15.2)),  # MOSFET, motor °C; battery V
-        ft_command(2.0, 3, ft.Command.SET_CURRENT_GEAR_CRC16, 0.0),
+        ft_command(0.0, 3, ft_records.Command.SET_CURRENT_BRAKE_CRC16, 2.0),
+        ft_frame(0.01, 3, ft_records.RealtimeData1(erpm=-7000, duty=-0.1)),
+        ft_command(1.0, 3, ft_records.Command.SET_CURRENT_GEAR_CRC16, 4.5),
+        ft_frame(1.01, 3, ft_records.RealtimeData1(erpm=21000, duty=0.3)),
+        ft_frame(1.02, 3, ft_records.RealtimeData0(motor_current_a=9.5, battery_current_a=4.25)),
+        ft_frame(
+            1.03, 3, ft_records.RealtimeData2(45.0, 51.5, 15.2)
+        ),  # MOSFET, motor °C; battery V
+        ft_command(2.0, 3, ft_records.Command.SET_CURRENT_GEAR_CRC16, 0.0),
     ]
     captured = capture_series(messages, family, pole_pairs={3: 14})
     esc = captured.telemetry[3]
@@ -147,7 +153,7 @@ def test_an_ft_capture_reads_erpm_as_rpm_and_keeps_each_command_unit_apart() -> 
 
 def test_the_family_is_the_one_that_reads_the_capture() -> None:
     assert guess_family(ckesc_capture()) is registry.family("ckesc")
-    ft_messages = [ft_frame(0.0, 1, ft.RealtimeData1(erpm=700, duty=0.1))] * 3
+    ft_messages = [ft_frame(0.0, 1, ft_records.RealtimeData1(erpm=700, duty=0.1))] * 3
     assert guess_family([*ft_messages, throttles(0.0, 1)]) is registry.family("ft")
     standard = can.Message(arbitration_id=0x7FF, data=b"", is_extended_id=False)
     assert guess_family([standard, BadLine(1, "x", "y")]) is None

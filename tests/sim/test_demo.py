@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import phase_start
 from pymavlink import mavutil
 
 from bridge._compat import tomllib
@@ -41,7 +42,6 @@ from bridge.sim.autopilot import (
     SimAutopilot,
     motor_count,
     outputs_at,
-    phase_start,
 )
 
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")

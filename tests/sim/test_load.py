@@ -23,8 +23,9 @@ from can.interfaces.udp_multicast.utils import unpack_message
 from conftest import MULTICAST_GROUP, free_port
 
 from bridge.errors import BridgeError, CodecError, ConfigError, NotExtendedIdError
-from bridge.escs import ckesc, ft
-from bridge.sim.load import (
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ft import codec as ft_codec
+from loadgen.load import (
     PRESETS,
     Load,
     LoadSet,
@@ -101,14 +102,21 @@ def test_the_load_stops_when_its_caller_is_killed(tmp_path: Path) -> None:
         textwrap.dedent(
             """
             import time
-            from bridge.sim.load import busy
+            from loadgen.load import busy
             load = busy(2).start()
             print(load.pgid, flush=True)
             time.sleep(60)
             """
         )
     )
-    proc = subprocess.Popen([sys.executable, str(caller)], stdout=subprocess.PIPE, text=True)
+    # loadgen/ is not installed: the caller finds it at the repository's root, as pytest does.
+    root = str(Path(__file__).resolve().parents[2])
+    proc = subprocess.Popen(
+        [sys.executable, str(caller)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": root},
+    )
     try:
         assert proc.stdout is not None
         assert select.select([proc.stdout], [], [], 10.0)[0], "the caller printed no pgid"
@@ -244,12 +252,12 @@ def test_can_flood_reaches_its_rate_with_frames_no_esc_protocol_claims() -> None
     assert {f.is_extended_id for f in frames} == {True, False}
     for frame in frames:
         if frame.is_extended_id:
-            assert ckesc.decode(frame) is None and ft.decode(frame) is None
+            assert ckesc_codec.decode(frame) is None and ft_codec.decode(frame) is None
         else:
             with pytest.raises(NotExtendedIdError):
-                ft.decode(frame)
+                ft_codec.decode(frame)
             with pytest.raises(CodecError):
-                ckesc.decode(frame)
+                ckesc_codec.decode(frame)
 
 
 def test_load_set_starts_and_stops_its_loads_together() -> None:

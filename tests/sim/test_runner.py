@@ -18,8 +18,12 @@ from conftest import ESC_BRIDGE, MULTICAST_GROUP, Daemon, free_port, multicast_b
 
 from bridge.cli import main
 from bridge.errors import CrcError
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ckesc.keys import CkescKeys
 from bridge.escs.ckesc.sim import SimCkesc
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.escs.ft.sim import SimFt
 from bridge.sim.base import SimEsc
 from bridge.sim.motor import Battery
@@ -61,12 +65,12 @@ def drive(
 
 
 def ft_telemetry(
-    received: list[tuple[float, can.Message]], kind: type[ft.FtTelemetry]
-) -> dict[int, list[tuple[float, ft.FtTelemetry]]]:
+    received: list[tuple[float, can.Message]], kind: type[ft_records.FtTelemetry]
+) -> dict[int, list[tuple[float, ft_records.FtTelemetry]]]:
     """Decoded FT telemetry of one kind, per ESC ID."""
-    out: dict[int, list[tuple[float, ft.FtTelemetry]]] = {}
+    out: dict[int, list[tuple[float, ft_records.FtTelemetry]]] = {}
     for t, msg in received:
-        frame = ft.decode(msg)
+        frame = ft_codec.decode(msg)
         if frame is not None and isinstance(frame.message, kind):
             out.setdefault(frame.esc_id, []).append((t, frame.message))
     return out
@@ -74,11 +78,11 @@ def ft_telemetry(
 
 def is_telemetry(msg: can.Message) -> bool:
     """An FT telemetry frame (the test's multicast bus also hears its own commands)."""
-    return msg.arbitration_id & 0xFF in set(ft.Telemetry)
+    return msg.arbitration_id & 0xFF in set(ft_records.Telemetry)
 
 
 def duty(esc_id: int, value: float) -> can.Message:
-    return ft.encode(ft.FtFrame(esc_id, ft.SetDuty(value)))
+    return ft_codec.encode(ft_records.FtFrame(esc_id, ft_records.SetDuty(value)))
 
 
 def test_ft_escs_spin_up_after_a_duty_command(buses: tuple[can.BusABC, can.BusABC]) -> None:
@@ -90,16 +94,16 @@ def test_ft_escs_spin_up_after_a_duty_command(buses: tuple[can.BusABC, can.BusAB
         received.append((0.6, late))
     stats = sim.stats
     battery_v, battery_a = sim.battery.voltage_v, sim.battery.current_a
-    data1 = ft_telemetry(received, ft.RealtimeData1)
+    data1 = ft_telemetry(received, ft_records.RealtimeData1)
     assert set(data1) == {1, 2}
     for esc_id, want in ((1, 0.3), (2, 0.6)):
-        erpms = [m.erpm for _, m in data1[esc_id] if isinstance(m, ft.RealtimeData1)]
+        erpms = [m.erpm for _, m in data1[esc_id] if isinstance(m, ft_records.RealtimeData1)]
         assert 40 <= len(erpms) <= 63  # 100 Hz for 0.6 s, on a busy machine
         assert erpms[0] < erpms[-1]
         full_erpm = 920 * battery_v * 7
         assert erpms[-1] == pytest.approx(want * full_erpm, rel=0.03)
-    data2 = ft_telemetry(received, ft.RealtimeData2)[2][-1][1]
-    assert isinstance(data2, ft.RealtimeData2)
+    data2 = ft_telemetry(received, ft_records.RealtimeData2)[2][-1][1]
+    assert isinstance(data2, ft_records.RealtimeData2)
     assert data2.battery_voltage_v == pytest.approx(battery_v, abs=0.05)
     # One battery feeds both: it carries their sum and sags under it.
     assert battery_a == pytest.approx(sum(e.motor.current_a for e in escs), rel=0.05)
@@ -172,7 +176,7 @@ def test_a_scheduled_fault_switches_on_at_its_time(buses: tuple[can.BusABC, can.
     assert len(from_1) > 100
     for msg in from_1:
         with pytest.raises(CrcError):
-            ft.decode(msg)
+            ft_codec.decode(msg)
 
 
 def test_set_fault_acts_at_once(buses: tuple[can.BusABC, can.BusABC]) -> None:
@@ -181,8 +185,8 @@ def test_set_fault_acts_at_once(buses: tuple[can.BusABC, can.BusABC]) -> None:
         drive(bus, 0.2, lambda: [duty(1, 0.5)])
         sim.set_fault(1, "stuck_motor")
         received = drive(bus, 0.2, lambda: [duty(1, 0.5)])
-    last = ft_telemetry(received, ft.RealtimeData1)[1][-1][1]
-    assert isinstance(last, ft.RealtimeData1) and last.erpm == 0
+    last = ft_telemetry(received, ft_records.RealtimeData1)[1][-1][1]
+    assert isinstance(last, ft_records.RealtimeData1) and last.erpm == 0
 
 
 def test_send_failures_are_counted_not_fatal(buses: tuple[can.BusABC, can.BusABC]) -> None:
@@ -202,16 +206,16 @@ def test_send_failures_are_counted_not_fatal(buses: tuple[can.BusABC, can.BusABC
 
 def test_ckesc_escs_follow_their_throttle_channels(buses: tuple[can.BusABC, can.BusABC]) -> None:
     sim_bus, bus = buses
-    escs = make_escs("ckesc", 2, [5, 6], channels=[2, 1])
+    escs = make_escs("ckesc", 2, [5, 6], keys=CkescKeys(ckesc_channels=(2, 1)))
     tids = itertools.count()
     with Simulator(sim_bus, escs):
         received = drive(
-            bus, 0.6, lambda: [ckesc.encode_raw_12b(1, [400, 1200], next(tids) % 32)], 0.01
+            bus, 0.6, lambda: [ckesc_codec.encode_raw_12b(1, [400, 1200], next(tids) % 32)], 0.01
         )
     speeds: dict[int, list[int]] = {}
     for _, msg in received:
-        frame = ckesc.decode(msg)
-        if frame is not None and isinstance(frame.message, ckesc.Msg1):
+        frame = ckesc_codec.decode(msg)
+        if frame is not None and isinstance(frame.message, ckesc_records.Msg1):
             speeds.setdefault(frame.source_node, []).append(frame.message.speed_rpm)
     assert set(speeds) == {5, 6}
     for node, throttle in ((5, 1200), (6, 400)):  # node 5 is on channel 2, node 6 on 1
@@ -238,9 +242,8 @@ def test_make_escs_defaults_and_checks() -> None:
         (lambda: make_escs("ft", 2, [4, 4]), "distinct"),
         (lambda: make_escs("ft", 1, [256]), "0..255"),
         (lambda: make_escs("ckesc", 1, [126]), "1..125"),
-        (lambda: make_escs("ckesc", 2, channels=[1]), "1 channels for 2"),
-        (lambda: make_escs("ft", 1, channels=[1]), "no throttle channel"),
-        (lambda: make_escs("vesc", 1), "'ckesc' or 'ft'"),
+        (lambda: make_escs("ckesc", 2, keys=CkescKeys(ckesc_channels=(1,))), "1 channels for 2"),
+        (lambda: make_escs("dshot", 1), "'ckesc' or 'ft'"),
     ]
     for call, match in bad:
         with pytest.raises(ValueError, match=match):
@@ -297,11 +300,11 @@ def test_cli_sim_answers_every_esc_and_a_silent_one_stays_silent() -> None:
             assert 4 not in seen  # motor 1 is ESC 4: silent
         assert seen == {5, 6}
         received = drive(bus, 0.5, lambda: [duty(i, 0.4) for i in (4, 5, 6)])
-        data1 = ft_telemetry(received, ft.RealtimeData1)
+        data1 = ft_telemetry(received, ft_records.RealtimeData1)
         assert set(data1) == {5, 6}
         for esc_id in (5, 6):
             last = data1[esc_id][-1][1]
-            assert isinstance(last, ft.RealtimeData1) and last.erpm > 10_000
+            assert isinstance(last, ft_records.RealtimeData1) and last.erpm > 10_000
     finally:
         code = proc.stop(signal.SIGTERM)
         bus.shutdown()
@@ -336,7 +339,7 @@ def test_cli_sim_ctrl_c_is_a_clean_exit() -> None:
         heard = None
         while heard is None and time.monotonic() < deadline:
             heard = bus.recv(0.1)  # a CKESC reports from power-up, commanded or not
-        assert heard is not None and ckesc.decode(heard) is not None
+        assert heard is not None and ckesc_codec.decode(heard) is not None
     finally:
         code = proc.stop(signal.SIGINT)
         bus.shutdown()
@@ -434,16 +437,18 @@ def test_set_id_only_when_alone_on_the_runners_bus(
     sim_bus, test_bus = buses
     with Simulator(sim_bus, make_escs("ckesc", n_escs)) as sim:
         time.sleep(0.3)  # long enough for each ESC to have heard the other's telemetry
-        request = ckesc.SetIdRequest(node_id=9, throttle_channel=7)
+        request = ckesc_records.SetIdRequest(node_id=9, throttle_channel=7)
         test_bus.send(
-            ckesc.encode(ckesc.CkescFrame(ckesc.default_priority(request), 0, 1, 0, request))
+            ckesc_codec.encode(
+                ckesc_codec.CkescFrame(ckesc_codec.default_priority(request), 0, 1, 0, request)
+            )
         )
         deadline = time.monotonic() + 2.0
-        responses: list[ckesc.SetIdResponse] = []
+        responses: list[ckesc_records.SetIdResponse] = []
         while time.monotonic() < deadline and not responses:
             msg = test_bus.recv(0.1)
-            frame = ckesc.decode(msg) if msg is not None else None
-            if frame is not None and isinstance(frame.message, ckesc.SetIdResponse):
+            frame = ckesc_codec.decode(msg) if msg is not None else None
+            if frame is not None and isinstance(frame.message, ckesc_records.SetIdResponse):
                 responses.append(frame.message)
         escs = list(sim.escs)
     assert responses, "no Set ID response"

@@ -44,7 +44,7 @@ from conftest import ESC_BRIDGE, ROOT, Observer, can_args, free_port
 from bridge.config import build_config
 from bridge.config_file import read_config_file
 from bridge.escs import registry
-from bridge.escs.family import EscFamily, EscFrame
+from bridge.escs.family import EscDecoder, EscFrame
 from bridge.mavlink import load_dialect
 
 # The project's dialect (ArduPilot's messages plus ESC_INFO/ESC_STATUS), MAVLink 2: tests/conftest
@@ -458,9 +458,7 @@ def esc_period_s(config: Path) -> float:
     """How often a bridge run with ``config`` commands each ESC: its family's driver's ticks
     per cycle at its output rate (CKESC, DroneCAN: every tick; FT: one ESC a tick)."""
     built = build_config(read_config_file(config), str(config))
-    family = registry.family(built.output.protocol)
-    rate_hz = built.output.rate_hz or family.default_rate_hz
-    return family.driver(built).ticks_per_cycle / rate_hz
+    return built.family.driver(built.esc_setup).ticks_per_cycle / built.rate_hz
 
 
 def start_bridge(
@@ -743,23 +741,23 @@ class GroundStation:
             time.sleep(0.02)
 
 
-def frame_reader(family: str) -> EscFamily:
-    """The ESC family ``family`` (registry name) for one pass over one stream of frames: an
-    instance of its own, since a family may keep state per stream (DroneCAN puts multi-frame
+def frame_reader(family: str) -> EscDecoder:
+    """A decoder of the ESC family ``family`` (registry name) for one pass over one stream of
+    frames: one of its own, since a family may keep state per stream (DroneCAN puts multi-frame
     transfers back together), and a pass that starts mid-record must not leave a half transfer
     to the next."""
-    return type(registry.family(family))()
+    return registry.family(family).decoder()
 
 
-def commands_by_motor(reader: EscFamily, frame: EscFrame) -> dict[int, float] | None:
+def commands_by_motor(reader: EscDecoder, frame: EscFrame) -> dict[int, float] | None:
     """The motor commands a frame ``reader`` decoded carries, by motor (0-based), as the family
-    reads them back (:meth:`EscFamily.commands_seen`: CKESC throttles by channel, FT currents
+    reads them back (:meth:`EscDecoder.commands_seen`: CKESC throttles by channel, FT currents
     in A by ESC ID, DroneCAN RawCommand values by ESC number; the tests' bridges and ESCs
     number channels and IDs 1..4 for motors 1..4); None for any other frame."""
     commands = {}
     for seen in reader.commands_seen(frame):
         target = seen.node_id if seen.node_id is not None else seen.channel
-        assert target is not None, f"{reader.name}: a command for no ESC: {seen}"
+        assert target is not None, f"a command for no ESC: {seen}"
         commands[target - 1] = seen.value
     return commands or None
 

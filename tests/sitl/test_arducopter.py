@@ -45,7 +45,7 @@ import pytest
 from conftest import Observer, free_port
 
 from bridge.errors import CodecError
-from bridge.escs.family import EscFamily, EscTelemetry
+from bridge.escs.family import EscDecoder, EscTelemetry
 
 from .conftest import (
     ARDUPILOT_SERIAL_PORTS,
@@ -167,7 +167,7 @@ class Rig:
     tolerance: float
     esc_period_s: float
     """How often each ESC gets a command (the family's ticks per cycle at the bridge's rate)."""
-    reader: EscFamily
+    reader: EscDecoder
     """The rig's family, decoding this bus's frames (:func:`frame_reader`)."""
     commands: list[list[Command]] = field(default_factory=list)
     """Per command frame (CKESC, DroneCAN: all four motors; FT: one ESC), its commands."""

@@ -43,7 +43,8 @@ from conftest import ROOT, free_port
 from pymavlink import mavutil
 
 from bridge.errors import CodecError
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 
 from .conftest import (
     ARDUPILOT_SERIAL_PORTS,
@@ -156,13 +157,13 @@ def decode_bus(frames: list[tuple[float, Any]]) -> list[BusSample]:
     out = []
     for t, msg in sorted(frames, key=lambda f: f[0]):
         with contextlib.suppress(CodecError):
-            frame: Any = ckesc.decode(msg)
+            frame: Any = ckesc_codec.decode(msg)
             if frame is None:
                 continue
             rec = frame.message
-            if isinstance(rec, ckesc.Msg1):
+            if isinstance(rec, ckesc_records.Msg1):
                 out.append(BusSample(t, frame.node_id - 1, rpm=rec.speed_rpm))
-            elif isinstance(rec, ckesc.Msg2):
+            elif isinstance(rec, ckesc_records.Msg2):
                 out.append(
                     BusSample(
                         t,

@@ -43,7 +43,11 @@ from bridge.can_io import (
 )
 from bridge.config import BridgeConfig, CanConfig, build_config, with_esc_count
 from bridge.errors import LinkError, ValueRangeError
-from bridge.escs import ckesc, ft, registry, uavcan_v0
+from bridge.escs import registry, uavcan_v0
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.escs.ft.sim import SimFt
 from bridge.mavlink.link import MavlinkLink
 from bridge.sim.runner import Simulator, make_escs
@@ -217,25 +221,27 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
         if kind == 0:  # another ESC's telemetry
             esc = rng.choice([i for i in range(1, 126) if i not in ids])
             can_id = (
-                ft.can_id(esc, rng.choice(FT_TELEMETRY))
+                ft_records.can_id(esc, rng.choice(FT_TELEMETRY))
                 if protocol == "ft"
                 else uavcan_v0.message_id(31, rng.choice(CKESC_TELEMETRY), esc)
             )
         elif kind == 1:  # the bridge's own commands
             can_id = (
-                ft.can_id(rng.choice(ours), rng.choice(FT_COMMANDS))
+                ft_records.can_id(rng.choice(ours), rng.choice(FT_COMMANDS))
                 if protocol == "ft"
                 else uavcan_v0.message_id(0, rng.choice(CKESC_COMMANDS), 0)
             )
         elif kind == 2:  # our telemetry ID, but an 11-bit frame
-            can_id, extended = ft.can_id(rng.choice(ours), FT_TELEMETRY[0]) & 0x7FF, False
+            can_id, extended = ft_records.can_id(rng.choice(ours), FT_TELEMETRY[0]) & 0x7FF, False
         elif kind == 3:  # our FT telemetry ID with bits 28..16 set: not FT
-            can_id = rng.randrange(1, 0x2000) << 16 | ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
+            can_id = rng.randrange(1, 0x2000) << 16 | ft_records.can_id(
+                rng.choice(ours), FT_TELEMETRY[1]
+            )
         elif kind == 4:  # the other protocol's telemetry from one of our IDs
             can_id = (
-                uavcan_v0.message_id(31, ckesc.TYPE_MSG1, rng.choice(ours))
+                uavcan_v0.message_id(31, ckesc_records.TYPE_MSG1, rng.choice(ours))
                 if protocol == "ft"
-                else ft.can_id(rng.choice(ours), FT_TELEMETRY[1])
+                else ft_records.can_id(rng.choice(ours), FT_TELEMETRY[1])
             )
         else:
             can_id = rng.getrandbits(29)
@@ -369,15 +375,25 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
         telemetry = [uavcan_v0.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
         commands = [uavcan_v0.message_id(0, t, 0) for t in CKESC_COMMANDS]
         others = [
-            uavcan_v0.message_id(31, ckesc.TYPE_MSG1, 9),  # not our node
-            uavcan_v0.message_id(16, ckesc.TYPE_GET_ESC_ID, ids[0]),  # an answer, not telemetry
-            uavcan_v0.service_id(16, ckesc.SERVICE_ESC_INFO, False, 0, ids[0]),  # a response
-            uavcan_v0.message_id(0, ckesc.TYPE_RAW_COMMAND_12B, 5),  # a command from another host
+            uavcan_v0.message_id(31, ckesc_records.TYPE_MSG1, 9),  # not our node
+            uavcan_v0.message_id(
+                16, ckesc_records.TYPE_GET_ESC_ID, ids[0]
+            ),  # an answer, not telemetry
+            uavcan_v0.service_id(
+                16, ckesc_records.SERVICE_ESC_INFO, False, 0, ids[0]
+            ),  # a response
+            uavcan_v0.message_id(
+                0, ckesc_records.TYPE_RAW_COMMAND_12B, 5
+            ),  # a command from another host
         ]
     else:
-        telemetry = [ft.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
-        commands = [ft.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
-        others = [ft.can_id(9, 0x0C), ft.can_id(ids[0], 0x0E), ft.can_id(ids[0], 0x06)]
+        telemetry = [ft_records.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
+        commands = [ft_records.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
+        others = [
+            ft_records.can_id(9, 0x0C),
+            ft_records.can_id(ids[0], 0x0E),
+            ft_records.can_id(ids[0], 0x06),
+        ]
     return telemetry, commands, others
 
 
@@ -396,7 +412,9 @@ def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
         sent = telemetry + commands + others
         for can_id in sent:
             sender.send(can.Message(arbitration_id=can_id, data=bytes(8)))
-        sender.send(can.Message(arbitration_id=ft.can_id(1, 0x0C) & 0x7FF, is_extended_id=False))
+        sender.send(
+            can.Message(arbitration_id=ft_records.can_id(1, 0x0C) & 0x7FF, is_extended_id=False)
+        )
         got = []
         while (msg := receiver.recv(0.05)) is not None:
             got.append(msg.arbitration_id)
@@ -496,12 +514,12 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
         lambda: None if held.is_set() else current[0], EscTable(ids), registry.family("ft")
     )
     telemetry = [
-        ft.encode(ft.FtFrame(esc, record))
+        ft_codec.encode(ft_records.FtFrame(esc, record))
         for esc in ids
         for record in (
-            ft.RealtimeData0(1.5, 2.25),
-            ft.RealtimeData1(21_000, 0.5),
-            ft.RealtimeData2(41.0, 55.5, 16.2),
+            ft_records.RealtimeData0(1.5, 2.25),
+            ft_records.RealtimeData1(21_000, 0.5),
+            ft_records.RealtimeData2(41.0, 55.5, 16.2),
         )
     ]
     count = 20_000
@@ -551,16 +569,6 @@ DUTIES = (0.2, 0.4, 0.6, 0.8)
 MEDIAN_AGE_MS = 50.0
 
 
-class _NoInput:
-    """An autopilot input sink for a link that never starts."""
-
-    def on_actuators(self, values: list[float], time_ns: int) -> None:
-        pass
-
-    def on_armed(self, armed: bool, time_ns: int) -> None:
-        pass
-
-
 def bridge_config(port: int, protocol: str, ids: list[int], **telemetry: Any) -> BridgeConfig:
     raw: dict[str, Any] = {
         "output": {"protocol": protocol},
@@ -577,7 +585,7 @@ def bridge_config(port: int, protocol: str, ids: list[int], **telemetry: Any) ->
 
 
 def make_fanout(config: BridgeConfig, **kwargs: Any) -> Fanout:
-    link = MavlinkLink(config.mavlink, _NoInput())  # never started: what it is sent is dropped
+    link = MavlinkLink(config.mavlink)  # never started: what it is sent is dropped
     return Fanout(
         config,
         esc_table(config),
@@ -677,9 +685,7 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_bac
     port = free_port()
     config = bridge_config(port, "ckesc", [1, 2], learn_ids=True)
     # The ESCs answer GET_ESC_ID with node IDs 9 and 12 for throttle channels 1 and 2.
-    sim = Simulator(
-        open_bus(config.can, 500_000), make_escs("ckesc", 2, [9, 12], channels=[1, 2]), own_bus=True
-    )
+    sim = Simulator(open_bus(config.can, 500_000), make_escs("ckesc", 2, [9, 12]), own_bus=True)
     recorded: list[can.Message] = []
     fanout = make_fanout(
         config, recorder=recorded.append if recording else None, read_back_commands=read_back
@@ -694,9 +700,11 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_bac
         assert reader is not None
         assert wait_until(lambda: reader.stats.telemetry > 10, 3.0)
         others = [
-            ckesc.encode_raw_12b(1, [100, 200], 0),  # the bridge's command, read back or not
-            ckesc.encode(  # MSG1 from a node that is not ours (the configured ID 1)
-                ckesc.CkescFrame(31, 1, None, 0, ckesc.Msg1(3000, 500, ckesc.Msg1Status(0)))
+            ckesc_codec.encode_raw_12b(1, [100, 200], 0),  # the bridge's command, read back or not
+            ckesc_codec.encode(  # MSG1 from a node that is not ours (the configured ID 1)
+                ckesc_codec.CkescFrame(
+                    31, 1, None, 0, ckesc_records.Msg1(3000, 500, ckesc_records.Msg1Status(0))
+                )
             ),
             can.Message(arbitration_id=0x1ABCDE05, data=bytes(8)),  # nobody's
         ]

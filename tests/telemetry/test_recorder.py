@@ -21,7 +21,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from bridge.config import CanConfig
 from bridge.errors import ConfigError
-from bridge.escs import ckesc, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec, records
 from bridge.telemetry.reader import CanReader
 from bridge.telemetry.recorder import Recording, candump_line
 from bridge.telemetry.state import EscTable
@@ -31,12 +32,12 @@ LINE = re.compile(r"^\((\d+\.\d{6})\) (\S+) ([0-9A-F]{3}|[0-9A-F]{8})#([0-9A-F]*
 
 def ckesc_telemetry(node: int, transfer_id: int) -> list[can.Message]:
     messages = (
-        ckesc.Msg1(3000 + node, 1100 + 5 * node, ckesc.Msg1Status.RUNNING),
-        ckesc.Msg2(24.0 + node / 100, 4.5, 40 + node),
-        ckesc.Msg3(40 + node, 30, 50, 45),
+        records.Msg1(3000 + node, 1100 + 5 * node, records.Msg1Status.RUNNING),
+        records.Msg2(24.0 + node / 100, 4.5, 40 + node),
+        records.Msg3(40 + node, 30, 50, 45),
     )
     return [
-        ckesc.encode(ckesc.CkescFrame(ckesc.default_priority(m), node, None, transfer_id, m))
+        codec.encode(codec.CkescFrame(codec.default_priority(m), node, None, transfer_id, m))
         for m in messages
     ]
 
@@ -56,7 +57,7 @@ def test_can_reader_frames_are_recorded_and_decode_back(tmp_path: Path) -> None:
         receiver, EscTable([1, 2, 3, 4]), registry.family("ckesc"), recorder=recording.can
     )
     sent = [m for tid in range(5) for node in (1, 2, 3, 4) for m in ckesc_telemetry(node, tid)]
-    sent.append(ckesc.encode_raw_12b(1, [1100, 1105, 1110, 1115], 7))  # the bridge's command
+    sent.append(codec.encode_raw_12b(1, [1100, 1105, 1110, 1115], 7))  # the bridge's command
     sent.append(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
     try:
         reader.start()

@@ -7,43 +7,49 @@ import time
 import can
 import pytest
 
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.family import (
     FAILURE_GENERIC,
     FAILURE_OVER_CURRENT,
     FAILURE_OVER_RPM,
     FAILURE_OVER_TEMPERATURE,
 )
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.telemetry.reader import CanReader
 from bridge.telemetry.state import EscTable, TelemetryLimits
 
-S = ckesc.Msg1Status
+S = ckesc_records.Msg1Status
 MS = 1_000_000
 T0 = 10_000 * MS  # an arbitrary monotonic start
 
 
-def ck(node: int, message: ckesc.CkescMessage, transfer_id: int = 0) -> can.Message:
-    frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, transfer_id, message)
-    return ckesc.encode(frame)
+def ck(node: int, message: ckesc_records.CkescMessage, transfer_id: int = 0) -> can.Message:
+    frame = ckesc_codec.CkescFrame(
+        ckesc_codec.default_priority(message), node, None, transfer_id, message
+    )
+    return ckesc_codec.encode(frame)
 
 
-def host_ck(message: ckesc.CkescMessage) -> can.Message:
-    return ck(ckesc.HOST_NODE_ID, message)
+def host_ck(message: ckesc_records.CkescMessage) -> can.Message:
+    return ck(ckesc_records.HOST_NODE_ID, message)
 
 
-def ftm(esc_id: int, message: ft.FtMessage) -> can.Message:
-    return ft.encode(ft.FtFrame(esc_id, message))
+def ftm(esc_id: int, message: ft_records.FtMessage) -> can.Message:
+    return ft_codec.encode(ft_records.FtFrame(esc_id, message))
 
 
 def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
     """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.family_of(msg.arbitration_id)
-    assert family is not None
-    frame = family.decode(msg)
+    family = registry.families_of(msg.arbitration_id)[0]
+    decoder = family.decoder()  # one frame is one message for the families fed here
+    frame = decoder.decode(msg)
     assert frame is not None
-    telemetry = family.telemetry(frame)
+    telemetry = decoder.telemetry(frame)
     if telemetry is None:
-        table.note_commands(family.commands_seen(frame))
+        table.note_commands(decoder.commands_seen(frame))
         return False
     return table.ingest(telemetry, now_ns)
 
@@ -51,11 +57,11 @@ def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
 def test_online_only_within_the_timeout() -> None:
     table = EscTable([1], timeout_ms=200)
     assert not table.snapshot(T0)[0].online
-    feed(table, ck(1, ckesc.Msg1(1, 1, S(0))), T0)
+    feed(table, ck(1, ckesc_records.Msg1(1, 1, S(0))), T0)
     assert table.snapshot(T0 + 200 * MS)[0].online
     stale = table.snapshot(T0 + 201 * MS)[0]
     assert not stale.online and stale.age_ms == pytest.approx(201)
-    feed(table, ck(1, ckesc.Msg1(1, 1, S(0))), T0 + 300 * MS)
+    feed(table, ck(1, ckesc_records.Msg1(1, 1, S(0))), T0 + 300 * MS)
     assert table.snapshot(T0 + 300 * MS)[0].online
 
 
@@ -63,24 +69,24 @@ def test_consumed_charge_integrates_current() -> None:
     table = EscTable([5], timeout_ms=500)
     step_ns = 100 * MS
     for i in range(36_001):  # 10 A for an hour, one sample every 100 ms
-        feed(table, ftm(5, ft.RealtimeData0(0.0, 10.0)), T0 + i * step_ns)
+        feed(table, ftm(5, ft_records.RealtimeData0(0.0, 10.0)), T0 + i * step_ns)
     assert table.snapshot(T0)[0].consumed_mah == pytest.approx(10_000, rel=1e-9)
     # A gap longer than the timeout (the ESC was silent) adds nothing.
-    feed(table, ftm(5, ft.RealtimeData0(0.0, 10.0)), T0 + 36_000 * step_ns + 600 * MS)
+    feed(table, ftm(5, ft_records.RealtimeData0(0.0, 10.0)), T0 + 36_000 * step_ns + 600 * MS)
     assert table.snapshot(T0)[0].consumed_mah == pytest.approx(10_000, rel=1e-9)
 
 
 def test_limits_raise_flags_for_ft() -> None:
     limits = TelemetryLimits(max_temp_c=90.0, max_current_a=40.0, max_rpm=8000)
     table = EscTable([1], pole_pairs=1, limits=limits)
-    feed(table, ftm(1, ft.RealtimeData2(90.0, 90.0, 25.0)), T0)
-    feed(table, ftm(1, ft.RealtimeData0(0.0, -40.0)), T0)
-    feed(table, ftm(1, ft.RealtimeData1(-8000, 0.1)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData2(90.0, 90.0, 25.0)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData0(0.0, -40.0)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData1(-8000, 0.1)), T0)
     assert table.snapshot(T0)[0].failure_flags == 0  # at the limits, not beyond
-    feed(table, ftm(1, ft.RealtimeData2(25.0, 90.5, 25.0)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData2(25.0, 90.5, 25.0)), T0)
     assert table.snapshot(T0)[0].failure_flags == FAILURE_OVER_TEMPERATURE
-    feed(table, ftm(1, ft.RealtimeData0(0.0, -40.01)), T0)
-    feed(table, ftm(1, ft.RealtimeData1(-8001, 0.1)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData0(0.0, -40.01)), T0)
+    feed(table, ftm(1, ft_records.RealtimeData1(-8001, 0.1)), T0)
     assert table.snapshot(T0)[0].failure_flags == (
         FAILURE_OVER_TEMPERATURE | FAILURE_OVER_CURRENT | FAILURE_OVER_RPM
     )
@@ -104,16 +110,16 @@ def test_a_burst_of_errors_raises_generic_for_a_second() -> None:
 
 def test_foreign_and_non_telemetry_frames_are_not_state() -> None:
     table = EscTable([1, 2])
-    assert not feed(table, ck(9, ckesc.Msg1(100, 100, S(0))), T0)
+    assert not feed(table, ck(9, ckesc_records.Msg1(100, 100, S(0))), T0)
     assert table.unknown_frames == 1
-    assert not feed(table, ck(1, ckesc.GetEscIdAnswer(1, 1)), T0)
+    assert not feed(table, ck(1, ckesc_records.GetEscIdAnswer(1, 1)), T0)
     assert all(s.frames == 0 for s in table.snapshot(T0))
 
 
 def test_own_commands_are_read_back_per_motor() -> None:
     table = EscTable([21, 22, 23, 24, 25, 26], channels=[5, 6, 7, 8, 1, 2])
-    feed(table, ckesc.encode_raw_10b([10, 20, 0, 0, 0, 0]), T0)
-    feed(table, host_ck(ckesc.RawCommand12b(2, (100, 200, 300, 400))), T0)
+    feed(table, ckesc_codec.encode_raw_10b([10, 20, 0, 0, 0, 0]), T0)
+    feed(table, host_ck(ckesc_records.RawCommand12b(2, (100, 200, 300, 400))), T0)
     commands = [(s.command, s.command_unit) for s in table.snapshot(T0)]
     assert commands == [
         (100.0, "throttle"),
@@ -124,8 +130,8 @@ def test_own_commands_are_read_back_per_motor() -> None:
         (40.0, "throttle"),
     ]
     ft_table = EscTable([3, 4])
-    feed(ft_table, ftm(4, ft.SetDuty(0.5, ft.Gear.NONE)), T0)
-    feed(ft_table, ftm(3, ft.SetCurrentBrake(2.5)), T0)
+    feed(ft_table, ftm(4, ft_records.SetDuty(0.5, ft_records.Gear.NONE)), T0)
+    feed(ft_table, ftm(3, ft_records.SetCurrentBrake(2.5)), T0)
     assert [(s.command, s.command_unit) for s in ft_table.snapshot(T0)] == [
         (2.5, "brake_current_a"),
         (0.5, "duty"),
@@ -135,10 +141,10 @@ def test_own_commands_are_read_back_per_motor() -> None:
 
 def test_remap_keeps_state_per_motor() -> None:
     table = EscTable([1, 2])
-    feed(table, ck(1, ckesc.Msg1(111, 0, S(0))), T0)
+    feed(table, ck(1, ckesc_records.Msg1(111, 0, S(0))), T0)
     table.remap([7, 8])
-    feed(table, ck(8, ckesc.Msg1(222, 0, S(0))), T0)
-    assert not feed(table, ck(1, ckesc.Msg1(333, 0, S(0))), T0)
+    feed(table, ck(8, ckesc_records.Msg1(222, 0, S(0))), T0)
+    assert not feed(table, ck(1, ckesc_records.Msg1(333, 0, S(0))), T0)
     assert [(s.node_id, s.rpm) for s in table.snapshot(T0)] == [(7, 111), (8, 222)]
     assert table.node_set == {7, 8}
     with pytest.raises(ValueError, match="distinct"):
@@ -175,12 +181,12 @@ def test_reader_on_a_real_bus_counts_bad_frames_against_their_esc() -> None:
     reader = CanReader(reader_bus, table, registry.family("ft"), recorder=recorded.append)
     reader.start()
     try:
-        good = ftm(2, ft.RealtimeData1(erpm=7000, duty=0.3))
-        bad = ftm(2, ft.RealtimeData2(50.0, 50.0, 25.0))
+        good = ftm(2, ft_records.RealtimeData1(erpm=7000, duty=0.3))
+        bad = ftm(2, ft_records.RealtimeData2(50.0, 50.0, 25.0))
         bad.data[7] ^= 0xFF  # the CRC's low byte
         esc_bus.send(good)
         esc_bus.send(bad)
-        esc_bus.send(ftm(1, ft.SetCurrent(3.0)))  # a command: read back, not telemetry
+        esc_bus.send(ftm(1, ft_records.SetCurrent(3.0)))  # a command: read back, not telemetry
         esc_bus.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"x"))
         _wait(lambda: reader.stats.frames == 4)
     finally:

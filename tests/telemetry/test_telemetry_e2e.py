@@ -31,8 +31,11 @@ from conftest import (
     multicast_bus,
 )
 
-from bridge.escs import ckesc, ft
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import codec as dronecan_codec
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.mavlink import load_dialect
 from bridge.telemetry.payload import (
     ActuatorsInputPayload,
@@ -43,7 +46,7 @@ from bridge.telemetry.payload import (
     HealthPayload,
 )
 
-S = ckesc.Msg1Status
+S = ckesc_records.Msg1Status
 # The test's autopilot link stands in for a ground station here: it gets every family (the
 # per-link default sets are tested in mavlink/test_link_sets.py).
 EVERY_FAMILY = "autopilot_messages = { esc_status = 10, esc_info = 1, esc_telemetry = 10 }\n"
@@ -75,9 +78,11 @@ class Escs:
         self.bus.shutdown()
 
 
-def ck(node: int, message: ckesc.CkescMessage, tid: int) -> can.Message:
-    frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, tid % 32, message)
-    return ckesc.encode(frame)
+def ck(node: int, message: ckesc_records.CkescMessage, tid: int) -> can.Message:
+    frame = ckesc_codec.CkescFrame(
+        ckesc_codec.default_priority(message), node, None, tid % 32, message
+    )
+    return ckesc_codec.encode(frame)
 
 
 def ckesc_reports(nodes: list[int], silent: set[int]) -> Callable[[int], list[can.Message]]:
@@ -88,9 +93,9 @@ def ckesc_reports(nodes: list[int], silent: set[int]) -> Callable[[int], list[ca
         for n in nodes:
             if n in silent:
                 continue
-            out.append(ck(n, ckesc.Msg1(1000 * n, 100 * n, S.RUNNING), tick))
-            out.append(ck(n, ckesc.Msg2(20 + n / 100, float(n), 30 + n), tick))
-            out.append(ck(n, ckesc.Msg3(30 + n, 20 + n, 40 + n, 25 + n), tick))
+            out.append(ck(n, ckesc_records.Msg1(1000 * n, 100 * n, S.RUNNING), tick))
+            out.append(ck(n, ckesc_records.Msg2(20 + n / 100, float(n), 30 + n), tick))
+            out.append(ck(n, ckesc_records.Msg3(30 + n, 20 + n, 40 + n, 25 + n), tick))
         return out
 
     return frames
@@ -228,9 +233,17 @@ def test_ft_crc_errors_count_into_error_count_and_raise_generic(
     def frames(tick: int) -> list[can.Message]:
         out = []
         for esc in (1, 2, 3, 4):
-            out.append(ft.encode(ft.FtFrame(esc, ft.RealtimeData1(erpm=-7000 * esc, duty=-0.1))))
-            out.append(ft.encode(ft.FtFrame(esc, ft.RealtimeData2(40.0 + esc, 50.0, 24.0))))
-        bad = ft.encode(ft.FtFrame(3, ft.RealtimeData0(1.0, 2.0)))
+            out.append(
+                ft_codec.encode(
+                    ft_records.FtFrame(esc, ft_records.RealtimeData1(erpm=-7000 * esc, duty=-0.1))
+                )
+            )
+            out.append(
+                ft_codec.encode(
+                    ft_records.FtFrame(esc, ft_records.RealtimeData2(40.0 + esc, 50.0, 24.0))
+                )
+            )
+        bad = ft_codec.encode(ft_records.FtFrame(3, ft_records.RealtimeData0(1.0, 2.0)))
         bad.data[6] ^= 0x5A  # ESC 3 sends a bad CRC every 20 ms
         out.append(bad)
         return out
@@ -467,7 +480,7 @@ def test_output_rate_holds_with_zenoh_unreachable(
     time.sleep(3.0)
     frames = [m for m in observer.since(start) if m.arbitration_id >> 8 & 0xFFFF == 20101]
     assert len(frames) >= 0.9 * 400 * 3, len(frames)  # one 12b frame per cycle at 400 Hz
-    assert all(ckesc.decode(m).message.throttles == (1200,) * 4 for m in frames[-10:])  # type: ignore[union-attr]
+    assert all(ckesc_codec.decode(m).message.throttles == (1200,) * 4 for m in frames[-10:])  # type: ignore[union-attr]
     assert daemon.stop() == 0
     assert "Zenoh" in daemon.output
 
@@ -502,17 +515,22 @@ def test_record_writes_a_decodable_capture_and_tlog(
         autopilot.start_stream(50)
 
         def commands_1250_us(msg: can.Message) -> bool:
-            frame = ckesc.decode(msg)
+            frame = ckesc_codec.decode(msg)
             return (
                 frame is not None
-                and isinstance(frame.message, ckesc.RawCommand12b)
+                and isinstance(frame.message, ckesc_records.RawCommand12b)
                 and frame.message.throttles == (500,) * 4
             )
 
         # Until the recording holds the commands and every report (the recorder flushes at
         # least once a second), however long the daemon's start-up takes on a loaded machine.
         observer.wait_for(commands_1250_us, timeout_s=30)
-        wanted = {ckesc.TYPE_RAW_COMMAND_12B, ckesc.TYPE_MSG1, ckesc.TYPE_MSG2, ckesc.TYPE_MSG3}
+        wanted = {
+            ckesc_records.TYPE_RAW_COMMAND_12B,
+            ckesc_records.TYPE_MSG1,
+            ckesc_records.TYPE_MSG2,
+            ckesc_records.TYPE_MSG3,
+        }
         deadline = time.monotonic() + 30
         while not wanted <= recorded_types(record) and time.monotonic() < deadline:
             time.sleep(0.2)

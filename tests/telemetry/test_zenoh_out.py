@@ -27,7 +27,11 @@ from payloads import ACTUATORS_INPUT, ACTUATORS_OUTPUT, HEALTH
 
 from bridge.config import ZenohConfig
 from bridge.errors import ConfigError
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.telemetry.payload import (
     ActuatorsInputPayload,
     ActuatorsOutputPayload,
@@ -120,24 +124,30 @@ class Mutable:
         return self.value
 
 
-def ingest(table: EscTable, *frames: ckesc.CkescFrame | ft.FtFrame) -> None:
+def ingest(table: EscTable, *frames: ckesc_codec.CkescFrame | ft_records.FtFrame) -> None:
     """Feed frames through the wire: encode, decode back, ingest as the CAN reader does."""
     for frame in frames:
-        msg = ckesc.encode(frame) if isinstance(frame, ckesc.CkescFrame) else ft.encode(frame)
-        family = registry.family_of(msg.arbitration_id)
-        assert family is not None
-        decoded = family.decode(msg, esc_nodes={CKESC_NODE})
+        msg = (
+            ckesc_codec.encode(frame)
+            if isinstance(frame, ckesc_codec.CkescFrame)
+            else ft_codec.encode(frame)
+        )
+        family = registry.families_of(msg.arbitration_id)[0]
+        decoder = family.decoder()  # CKESC and FT: one frame is one message
+        decoded = decoder.decode(msg, esc_nodes={CKESC_NODE})
         assert decoded is not None
-        telemetry = family.telemetry(decoded)
+        telemetry = decoder.telemetry(decoded)
         assert telemetry is not None
         assert table.ingest(telemetry, time.monotonic_ns())
 
 
-def ckesc_frame(message: ckesc.CkescMessage, transfer_id: int = 0) -> ckesc.CkescFrame:
-    return ckesc.CkescFrame(16, CKESC_NODE, None, transfer_id, message)
+def ckesc_frame(
+    message: ckesc_records.CkescMessage, transfer_id: int = 0
+) -> ckesc_codec.CkescFrame:
+    return ckesc_codec.CkescFrame(16, CKESC_NODE, None, transfer_id, message)
 
 
-RUNNING = ckesc.Msg1Status.RUNNING
+RUNNING = ckesc_records.Msg1Status.RUNNING
 
 
 @pytest.fixture
@@ -147,16 +157,20 @@ def table() -> EscTable:
     escs = EscTable([CKESC_NODE, FT_ESC, SILENT_NODE], pole_pairs=POLE_PAIRS, timeout_ms=60_000)
     ingest(
         escs,
-        ckesc_frame(ckesc.Msg1(speed_rpm=1234, throttle=1000, status=RUNNING), 0),
-        ckesc_frame(ckesc.Msg2(voltage_v=24.5, current_a=3.25, mos_temp_c=41), 1),
+        ckesc_frame(ckesc_records.Msg1(speed_rpm=1234, throttle=1000, status=RUNNING), 0),
+        ckesc_frame(ckesc_records.Msg2(voltage_v=24.5, current_a=3.25, mos_temp_c=41), 1),
         ckesc_frame(
-            ckesc.Msg3(mos_temp_c=42, capacitor_temp_c=30, motor_temp_c=50, mcu_temp_c=45), 2
+            ckesc_records.Msg3(mos_temp_c=42, capacitor_temp_c=30, motor_temp_c=50, mcu_temp_c=45),
+            2,
         ),
-        ckesc_frame(ckesc.MsgExp8(power_on_count=17, start_count=230, stop_count=229), 3),
-        ft.FtFrame(FT_ESC, ft.RealtimeData0(motor_current_a=5.0, battery_current_a=2.5)),
-        ft.FtFrame(FT_ESC, ft.RealtimeData1(erpm=7000, duty=0.25)),
-        ft.FtFrame(
-            FT_ESC, ft.RealtimeData2(mosfet_temp_c=35.5, motor_temp_c=40.0, battery_voltage_v=22.2)
+        ckesc_frame(ckesc_records.MsgExp8(power_on_count=17, start_count=230, stop_count=229), 3),
+        ft_records.FtFrame(
+            FT_ESC, ft_records.RealtimeData0(motor_current_a=5.0, battery_current_a=2.5)
+        ),
+        ft_records.FtFrame(FT_ESC, ft_records.RealtimeData1(erpm=7000, duty=0.25)),
+        ft_records.FtFrame(
+            FT_ESC,
+            ft_records.RealtimeData2(mosfet_temp_c=35.5, motor_temp_c=40.0, battery_voltage_v=22.2),
         ),
     )
     return escs
@@ -288,7 +302,7 @@ def test_every_key_carries_json_with_the_tables_values(
     assert collector.wait_for(b.key("actuators/output")).value["commands"][0]["value"] == 1000
 
     # A fresh frame shows in the next sample.
-    ingest(table, ckesc_frame(ckesc.Msg1(speed_rpm=2000, throttle=1500, status=RUNNING), 4))
+    ingest(table, ckesc_frame(ckesc_records.Msg1(speed_rpm=2000, throttle=1500, status=RUNNING), 4))
     collector.wait_for(b.key("esc/1/telemetry"), lambda v: v["rpm"] == 2000)
 
     samples = collector.samples()
@@ -363,7 +377,7 @@ def test_queryable_answers_the_latest_values(
 
     assert set(query(b.key("esc/*/info"))) == {b.key(f"esc/{n}/info") for n in (1, 2, 3)}
 
-    ingest(table, ckesc_frame(ckesc.Msg1(speed_rpm=3210, throttle=2000, status=RUNNING), 5))
+    ingest(table, ckesc_frame(ckesc_records.Msg1(speed_rpm=3210, throttle=2000, status=RUNNING), 5))
     collector.wait_for(b.key("esc/1/telemetry"), lambda v: v["rpm"] == 3210)
     latest = query(b.key("esc/1/telemetry"))
     assert list(latest) == [b.key("esc/1/telemetry")]

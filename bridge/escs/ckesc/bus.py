@@ -8,15 +8,16 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs import ckesc, uavcan_v0
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import records
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids, fewest_blocks
 
-TELEMETRY_TYPES: Final = frozenset(range(ckesc.TYPE_MSG1, ckesc.TYPE_MSG_EXP12 + 1))
+TELEMETRY_TYPES: Final = frozenset(range(records.TYPE_MSG1, records.TYPE_MSG_EXP12 + 1))
 """MSG1..MSG_EXP12 (20050..20064): what :class:`~bridge.telemetry.state.EscTable` takes from an
 ESC. CANTest reports, MSGControl acks, GET_ESC_ID answers and service responses are not."""
 COMMAND_TYPES: Final = frozenset(
-    {ckesc.TYPE_RAW_COMMAND_14B, ckesc.TYPE_RAW_COMMAND_12B, ckesc.TYPE_RAW_COMMAND_10B}
+    {records.TYPE_RAW_COMMAND_14B, records.TYPE_RAW_COMMAND_12B, records.TYPE_RAW_COMMAND_10B}
 )
 """RawCommand_14b/12b/10b, sent by the host (node 0): the commands the ESC state reads back."""
 
@@ -45,7 +46,7 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
     check_ids(ids, range(1, uavcan_v0.MAX_NODE_ID + 1), "CKESC node")
     filters = _filters(TELEMETRY_TYPES, ids)
     if read_back_commands:
-        filters += _filters(COMMAND_TYPES, frozenset({ckesc.HOST_NODE_ID}))
+        filters += _filters(COMMAND_TYPES, frozenset({records.HOST_NODE_ID}))
     return filters
 
 

@@ -16,48 +16,274 @@ which are refused before anything is sent (the message names the flag).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import enum
+import json
 import sys
 import textwrap
-from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, Final, TypeAlias
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Final, TypeAlias, TypeVar
 
-from bridge.cli._common import (
-    EXIT_FAILED,
-    EXIT_OK,
-    bitrate_arg,
-    positive_seconds,
-)
-from bridge.errors import ConfigError
-from bridge.escs.ckesc import (
-    ExpandSetCommand,
-    ThrottleSource,
-)
-from bridge.escs.ckesc._cli_common import (
-    _EXPAND_NUMBERS,
-    COLORS,
-    EXPAND_COMMANDS,
-    EXPAND_PARTS,
-    REPORT_COMMANDS,
-    ROTATIONS,
-    SOURCES,
-    _hertz,
-    _integer,
-    _node_argument,
-    _print_json,
-    _run,
-    add_bus_arguments,
-    bus_text,
-    interval_ms,
-    jsonable,
-    record_lines,
-    text_value,
-)
+from bridge.bitrate import parse_bitrate
+from bridge.errors import ConfigError, NoAnswerError, ValueRangeError, WrongNodeError
+from bridge.escs.ckesc import records
+from bridge.escs.ckesc.results import scan_warnings, value_name
 
 if TYPE_CHECKING:
+    from bridge.escs.ckesc.setup import CkescClient
+    from bridge.escs.tools import BusFlags
+
     EscCommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
     """What ``add_subparsers`` returns: the ``esc`` group's commands."""
+
+SUMMARY: Final = "CKESC scan, node ID and channel, LED, direction, rates, self tests"
+"""What these commands do, for ``esc-bridge esc --help``."""
+
+# Exit statuses, as every esc-bridge command's.
+EXIT_OK: Final = 0
+EXIT_FAILED: Final = 1  # no answer, a refusal, a failed check or a bus error
+EXIT_INTERRUPTED: Final = 130  # Ctrl-C
+
+_T = TypeVar("_T")
+
+
+COLORS: Final[dict[str, records.LedColor]] = {
+    "off": records.LedColor(0),
+    "blue": records.LedColor.BLUE,
+    "green": records.LedColor.GREEN,
+    "cyan": records.LedColor.GREEN | records.LedColor.BLUE,
+    "red": records.LedColor.RED,
+    "magenta": records.LedColor.RED | records.LedColor.BLUE,
+    "yellow": records.LedColor.RED | records.LedColor.GREEN,
+    "white": records.LedColor.RED | records.LedColor.GREEN | records.LedColor.BLUE,
+}
+ROTATIONS: Final = {"normal": records.Rotation.NORMAL, "reversed": records.Rotation.REVERSED}
+SOURCES: Final = {"can": records.ThrottleSource.CAN, "pwm-can": records.ThrottleSource.PWM_AND_CAN}
+REPORT_COMMANDS: Final = {
+    "pause": records.MsgControlCommand.PAUSE,
+    "resume": records.MsgControlCommand.RESUME_MSG,
+    "resume-exp": records.MsgControlCommand.RESUME_EXP,
+}
+EXPAND_COMMANDS: Final = {
+    command.name.lower().replace("_", "-"): command for command in records.ExpandSetCommand
+}
+"""Expand Set commands by name: direction, led, throttle-interface, ..., system."""
+EXPAND_PARTS: Final[dict[records.ExpandSetCommand, dict[str, int]]] = {
+    records.ExpandSetCommand.DIRECTION: {"normal": 1, "reversed": 2},
+    records.ExpandSetCommand.LED: {"off": 0, "red": 1, "green": 2, "blue": 3},
+    records.ExpandSetCommand.THROTTLE_INTERFACE: {
+        "pwm": 1,
+        "pwm-tcan": 2,
+        "tcan": 3,
+        "dshot": 4,
+        "pwm-uavcan": 5,
+        "uavcan": 6,
+    },
+    records.ExpandSetCommand.ACTIVE_FREEWHEELING: {"off": 0, "on": 1},
+    records.ExpandSetCommand.TIMING: {},
+    records.ExpandSetCommand.TIMING_2: {},
+    records.ExpandSetCommand.LOAD_TYPE: {"light": 1, "standard": 2, "heavy": 3, "very-heavy": 4},
+    records.ExpandSetCommand.PROP_LOCK: {"off": 0, "weak": 1, "medium": 2, "strong": 3},
+    records.ExpandSetCommand.STARTUP_ACCELERATION: {},
+    records.ExpandSetCommand.SIGNAL_LOSS_RATE: {},
+    records.ExpandSetCommand.READ_TEMP_RECORD: {"read": 1},
+    records.ExpandSetCommand.BAUD: {
+        f"{rate // 1_000_000}m" if rate % 1_000_000 == 0 else f"{rate // 1000}k": code
+        for code, rate in enumerate(records.BAUD_RATES_BPS)
+    },
+    records.ExpandSetCommand.SYSTEM: {
+        "factory-reset": 0x00,
+        "leave-test-mode": 0x10,
+        "enter-test-mode": 0x11,
+    },
+}
+"""Names for each Expand Set command's parts (seed 4.4.25); a number is always accepted too."""
+_EXPAND_NUMBERS: Final = {
+    records.ExpandSetCommand.TIMING: "1..4",
+    records.ExpandSetCommand.TIMING_2: "1..4",
+    records.ExpandSetCommand.STARTUP_ACCELERATION: "0..15, higher starts faster",
+    records.ExpandSetCommand.SIGNAL_LOSS_RATE: "0..15, higher cuts the throttle faster",
+}
+
+# The codec's and the client's field names in a ValueRangeError -> the flag that gave them.
+_FIELD_FLAGS: Final = (
+    ("SetIdRequest.node_id", "--node"),
+    ("SetIdRequest.throttle_channel", "--channel"),
+    ("node = ", "--node"),
+    ("bitrate = ", "BITRATE"),
+    ("SetLedRequest.color", "--color"),
+    ("SetLedRequest.blink_hz", "--blink"),
+    ("SetFreqRequest.msg1_interval_ms", "--msg1-hz"),
+    ("SetFreqRequest.msg2_interval_ms", "--msg2-hz"),
+    ("SetFreqRequest.msg3_interval_ms", "--msg3-hz"),
+    ("ExpandSetRequest.part", "PART"),
+    ("MaintenanceRequest.option", "--option"),
+    ("duration = ", "--seconds"),
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Shared arguments and plumbing
+
+
+def add_bus_arguments(
+    parser: argparse.ArgumentParser, bus_flags: BusFlags, *, json_output: bool = True
+) -> None:
+    """The bus flags (as ``run``'s), ``--timeout`` and ``--json``."""
+    bus = parser.add_argument_group("CAN bus (as for `esc-bridge run`)")
+    bus_flags.add(bus, bitrate_help="CAN bit rate: 500000, 500k or 1M (CKESC factory: 500k)")
+    parser.add_argument(
+        "--timeout",
+        type=_positive_seconds,
+        default=0.5,
+        metavar="S",
+        help="how long to wait for each answer (default 0.5 s)",
+    )
+    if json_output:
+        parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(bus_flags=bus_flags)
+
+
+def _node_argument(
+    parser: argparse.ArgumentParser, *, required: bool = True, text: str = ""
+) -> None:
+    parser.add_argument(
+        "--node",
+        type=_integer,
+        required=required,
+        metavar="N",
+        help=text or "the ESC's node ID, 1..125 (`esc scan` lists them; factory ID 125)",
+    )
+
+
+def _integer(text: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+
+
+def _positive(what: str) -> Callable[[str], float]:
+    """An argument type: a finite number > 0, else an error naming ``what`` was expected."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not 0 < value < float("inf"):
+            raise argparse.ArgumentTypeError(f"expected {what} > 0, got {text!r}")
+        return value
+
+    return parse
+
+
+_hertz = _positive("a rate in Hz")
+_positive_seconds = _positive("a number of seconds")
+
+
+def _bitrate(text: str) -> int:
+    """A bit rate as ``500000``, ``500k`` or ``1M``."""
+    try:
+        return parse_bitrate(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def interval_ms(hz: float) -> int:
+    """A report rate as the nearest interval the ESC can take (2 ms units)."""
+    return 2 * round(500 / hz)
+
+
+@contextlib.contextmanager
+def open_client(args: argparse.Namespace) -> Iterator[CkescClient]:
+    """A client on the bus the flags name; the bus is shut down on exit.
+
+    A ValueRangeError inside becomes a ConfigError naming the flag (exit status 2).
+
+    Raises:
+        ConfigError: bad flags, a bad file, or a value outside the protocol's range.
+        LinkError: the bus cannot be opened.
+    """
+    from bridge.escs.ckesc.setup import CkescClient
+
+    bus = args.bus_flags.open(args)
+    try:
+        yield CkescClient(bus, timeout_s=args.timeout)
+    except ValueRangeError as exc:
+        raise ConfigError(_flag_error(exc)) from None
+    finally:
+        bus.shutdown()
+
+
+def _flag_error(exc: ValueRangeError) -> str:
+    text = str(exc)
+    for field, flag in _FIELD_FLAGS:
+        if field in text:
+            if flag.startswith("--msg"):
+                text += f" ({flag} takes 2..50 Hz)"
+            return f"{flag}: {text}; nothing was sent"
+    return f"{text}; nothing was sent"
+
+
+def _run(
+    args: argparse.Namespace, action: Callable[[CkescClient], _T], *, scan_hint: bool = True
+) -> _T:
+    """``action`` with a client. A node that does not answer gets a hint to scan; Ctrl-C is
+    a quiet exit with status 130 (the client has ended what it started)."""
+    try:
+        with open_client(args) as client:
+            return action(client)
+    except NoAnswerError as exc:
+        where = f"; the bus: {args.bus_flags.describe(args)}"
+        if not scan_hint or isinstance(exc, WrongNodeError) or args.node is None:
+            raise type(exc)(f"{exc}{where}") from None
+        raise type(exc)(f"{exc}{where} (`esc-bridge esc scan` lists the ESCs on the bus)") from None
+    except KeyboardInterrupt:
+        print("esc-bridge: interrupted", file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED) from None
+
+
+def _print_json(value: Any) -> None:
+    print(json.dumps(jsonable(value)))
+
+
+def jsonable(value: Any) -> Any:
+    """A result for JSON: records as objects, enums and LED colours by their CLI names."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, enum.Enum):
+        return value_name(value)
+    if isinstance(value, tuple | list):
+        return [jsonable(item) for item in value]
+    if isinstance(value, dict):
+        return {str(key): jsonable(item) for key, item in value.items()}
+    return value
+
+
+# A field name's unit suffix -> the unit printed after the value.
+_UNITS: Final = (("_ms", " ms"), ("_c", " °C"), ("_hz", " Hz"), ("_a", " A"), ("_s", " s"))
+
+
+def text_value(value: Any) -> str:
+    """A field's value for the text output ("reversed", "pwm-can", "cyan", "yes", "14")."""
+    return value_name(value)
+
+
+def record_lines(record: Any, indent: str = "  ") -> list[str]:
+    """One ``label  value unit`` line per field of a response record."""
+    lines = []
+    for f in dataclasses.fields(record):
+        label, unit = f.name, ""
+        for suffix, text in _UNITS:
+            if label.endswith(suffix):
+                label, unit = label.removesuffix(suffix), text
+                break
+        label = label.replace("_", " ")
+        lines.append(f"{indent}{label:<24} {text_value(getattr(record, f.name))}{unit}")
+    return lines
+
 
 # --------------------------------------------------------------------------------------------
 # scan
@@ -70,8 +296,6 @@ _SCAN_HEADER: Final = (
 
 
 def _scan(args: argparse.Namespace) -> int:
-    from bridge.escs.ckesc.setup import scan_warnings
-
     escs = _run(args, lambda client: client.scan())
     warnings = scan_warnings(escs)
     incomplete = [esc for esc in escs if esc.problem is not None]
@@ -88,9 +312,10 @@ def _scan(args: argparse.Namespace) -> int:
             print(f"warning: {warning}")
     if not escs:
         print(
-            f"esc-bridge: error: no ESC answered GET_ESC_ID on {bus_text(args)}: is the ESC "
-            "powered and wired (CAN H/L, 120 ohm at both ends), and does it run at that bit "
-            "rate (500 kbit/s from the factory; --bitrate or [can] bitrate for another)?",
+            "esc-bridge: error: no ESC answered GET_ESC_ID on "
+            f"{args.bus_flags.describe(args)}: is the ESC powered and wired (CAN H/L, 120 ohm "
+            "at both ends), and does it run at that bit rate (500 kbit/s from the factory; "
+            "--bitrate or [can] bitrate for another)?",
             file=sys.stderr,
         )
         return EXIT_FAILED
@@ -107,7 +332,9 @@ def _scan_row(esc: Any) -> str:
         led = f"{text_value(config.led_color)} {blink}"
         intervals = f"{config.msg1_interval_ms}/{config.msg2_interval_ms}/{config.msg3_interval_ms}"
         direction = "reversed" if config.direction_reversed else "normal"
-        source = "PWM+CAN" if config.throttle_source == ThrottleSource.PWM_AND_CAN else "CAN"
+        source = (
+            "PWM+CAN" if config.throttle_source == records.ThrottleSource.PWM_AND_CAN else "CAN"
+        )
         middle = f"{direction:<9}  {source:<8}  {led:<13}  {intervals:<13}"
     if info is None:
         tail = f"{'-':<5}  {'-':<7}  {'-':<2}  {'-':<8}  -"
@@ -228,7 +455,7 @@ def _fault_text(fault: Any) -> str:
     return f"0x{int(fault):02X} {name}"
 
 
-def expand_part(command: ExpandSetCommand, text: str | None) -> int:
+def expand_part(command: records.ExpandSetCommand, text: str | None) -> int:
     """PART as a number: a name of :data:`EXPAND_PARTS`, or a number (its range is the codec's).
 
     Raises:
@@ -248,7 +475,7 @@ def expand_part(command: ExpandSetCommand, text: str | None) -> int:
         raise ConfigError(f"{flag}: {text!r} is not {_expand_choices(command)}") from None
 
 
-def _expand_choices(command: ExpandSetCommand) -> str:
+def _expand_choices(command: records.ExpandSetCommand) -> str:
     names = EXPAND_PARTS[command]
     if names:
         return "one of " + ", ".join(names) + " (or their numbers)"
@@ -264,7 +491,7 @@ def _expand(args: argparse.Namespace) -> int:
         return EXIT_OK
     names = {number: name for name, number in EXPAND_PARTS[command].items()}
     what = f"{args.name} {part}" + (f" ({names[part]})" if part in names else "")
-    if command == ExpandSetCommand.READ_TEMP_RECORD:
+    if command == records.ExpandSetCommand.READ_TEMP_RECORD:
         print(f"node {args.node}: temperature records (the highest temperature of each sensor)")
         print("  sensor     max °C  run  at s")
         for record in result.temp_records:
@@ -303,12 +530,12 @@ def _print_record(args: argparse.Namespace, title: str, record: Any) -> int:
 
 def _maintenance(args: argparse.Namespace) -> int:
     options = (0, 1, 2) if args.option is None else (args.option,)
-    records = _run(args, lambda client: [client.maintenance(args.node, o) for o in options])
+    answers = _run(args, lambda client: [client.maintenance(args.node, o) for o in options])
     if args.json:
-        by_option = {str(o): jsonable(r) for o, r in zip(options, records, strict=True)}
+        by_option = {str(o): jsonable(r) for o, r in zip(options, answers, strict=True)}
         _print_json({"node_id": args.node, "options": by_option})
     else:
-        for option, record in zip(options, records, strict=True):
+        for option, record in zip(options, answers, strict=True):
             print(f"node {args.node}: maintenance information, option {option}")
             print("\n".join(record_lines(record)))
     return EXIT_OK
@@ -434,7 +661,7 @@ COMMANDS: Final[tuple[_Command, ...]] = (
         arguments=(
             _arg(
                 "new_bitrate",  # not "bitrate": that is the bus's own (--bitrate)
-                type=bitrate_arg,
+                type=_bitrate,
                 metavar="BITRATE",
                 help="1M, 500k, 250k, 200k, 125k, 100k or 50k (or in bit/s)",
             ),
@@ -568,7 +795,7 @@ COMMANDS: Final[tuple[_Command, ...]] = (
         arguments=(
             _arg(
                 "--seconds",
-                type=positive_seconds,
+                type=_positive_seconds,
                 default=2.0,
                 metavar="S",
                 help="test for S seconds (default 2)",
@@ -578,9 +805,10 @@ COMMANDS: Final[tuple[_Command, ...]] = (
 )
 
 
-def add_commands(esc_commands: EscCommands) -> None:
+def add_commands(esc_commands: EscCommands, bus_flags: BusFlags) -> None:
     """Add every command of :data:`COMMANDS` to the ``esc`` group: the bus flags
-    (:func:`add_bus_arguments`), ``--node``, its own arguments, its handler."""
+    (``bus_flags``, see :func:`add_bus_arguments`), ``--node``, its own arguments, its
+    handler."""
     for command in COMMANDS:
         parser = esc_commands.add_parser(
             command.name,
@@ -588,7 +816,7 @@ def add_commands(esc_commands: EscCommands) -> None:
             description=command.description,
             **command.parser_options,
         )
-        add_bus_arguments(parser)
+        add_bus_arguments(parser, bus_flags)
         if command.node is not None:
             _node_argument(parser, required=command.node_required, text=command.node)
         for names, options in command.arguments:

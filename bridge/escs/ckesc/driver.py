@@ -10,7 +10,8 @@ from collections.abc import Sequence
 
 import can
 
-from bridge.escs import ckesc, uavcan_v0
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec, records
 from bridge.escs.drivers import unit_fraction
 
 
@@ -19,11 +20,16 @@ class CkescDriver:
 
     ticks_per_cycle = 1
 
-    def __init__(self, command: str, channels: Sequence[int]) -> None:
+    def __init__(self, command: str, channels: Sequence[int], ids: Sequence[int] = ()) -> None:
+        """``channels[i]``: the throttle channel of mixer output i; ``ids[i]``: the node ID of
+        its ESC (for messages only)."""
+        self.kind = command
+        self._ids = tuple(ids)
+        self._channels = tuple(channels)
         self._command = command
         self._channel_index = [channel - 1 for channel in channels]
-        self._full_scale = ckesc.THROTTLE_10B_MAX if command == "10b" else ckesc.THROTTLE_MAX
-        self._throttles = [0] * ckesc.MAX_CHANNELS
+        self._full_scale = records.THROTTLE_10B_MAX if command == "10b" else records.THROTTLE_MAX
+        self._throttles = [0] * records.MAX_CHANNELS
         self._groups = sorted({index // 4 + 1 for index in self._channel_index})
         self._transfer_ids = uavcan_v0.TransferIds()
         self._zeros = [0.0] * len(self._channel_index)
@@ -36,15 +42,24 @@ class CkescDriver:
         if self._command == "12b":
             next_id = self._transfer_ids.next
             return [
-                ckesc.encode_raw_12b(
-                    group, throttles[4 * group - 4 : 4 * group], next_id(ckesc.TYPE_RAW_COMMAND_12B)
+                codec.encode_raw_12b(
+                    group,
+                    throttles[4 * group - 4 : 4 * group],
+                    next_id(records.TYPE_RAW_COMMAND_12B),
                 )
                 for group in self._groups
             ]
         if self._command == "14b":
-            tid = self._transfer_ids.next(ckesc.TYPE_RAW_COMMAND_14B)
-            return [ckesc.encode_raw_14b(throttles[:4], tid)]
-        return [ckesc.encode_raw_10b(throttles[:6])]
+            tid = self._transfer_ids.next(records.TYPE_RAW_COMMAND_14B)
+            return [codec.encode_raw_14b(throttles[:4], tid)]
+        return [codec.encode_raw_10b(throttles[:6])]
 
     def safe_frames(self, tick: int) -> list[can.Message]:
         return self.tick_frames(tick, self._zeros)
+
+    def describe_command(self, fraction: float) -> str:
+        full = self._full_scale
+        return f"CKESC throttle {int(fraction * full + 0.5)}/{full}"
+
+    def describe_esc(self, index: int) -> str:
+        return f"CKESC node {self._ids[index]}, throttle channel {self._channels[index]}"

@@ -29,6 +29,7 @@ class CkescKeys:
         (),
         int_list(1, 20),
         "CKESC throttle channel of each output (set in the ESC with Set ID); default 1..N",
+        per_esc=True,
     )
     ckesc_msg_hz: tuple[float, float, float] = key(
         (50.0, 10.0, 2.0),

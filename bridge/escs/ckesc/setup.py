@@ -43,8 +43,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
-from typing import cast
+from typing import Final, cast
 
 import can
 
@@ -54,56 +53,18 @@ from bridge.errors import (
     SetupError,
     ValueRangeError,
 )
-from bridge.escs import ckesc, uavcan_v0
-from bridge.escs.ckesc import (
-    CanTestOption,
-    CanTestReport,
-    CanTestRequest,
-    CkescFrame,
-    CkescMessage,
-    EscInfoRequest,
-    EscInfoResponse,
-    ExpandSetCommand,
-    ExpandSetRequest,
-    GetEscIdAnswer,
-    GetEscIdRequest,
-    LedColor,
-    Maintenance2Response,
-    MaintenanceRequest,
-    MajorConfigRequest,
-    MajorConfigResponse,
-    MsgControlAck,
-    MsgControlCommand,
-    MsgControlRequest,
-    Rotation,
-    SelfTestRequest,
-    SelfTestResponse,
-    SetBaudRequest,
-    SetBaudResponse,
-    SetFreqRequest,
-    SetFreqResponse,
-    SetIdRequest,
-    SetIdResponse,
-    SetLedRequest,
-    SetLedResponse,
-    SetRotationRequest,
-    SetRotationResponse,
-    ThrottleSelectRequest,
-    ThrottleSelectResponse,
-    ThrottleSource,
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec, records
+from bridge.escs.ckesc.keys import CkescKeys
+from bridge.escs.ckesc.link import (
+    NO_ANSWER_HELP,
+    SET_ID_HELP,
+    R,
+    ServiceLink,
+    check_node,
+    nodes_text,
 )
-from bridge.escs.ckesc._setup_common import (
-    _EXPAND_EFFECTS,
-    _MAINTENANCE_RESPONSES,
-    _NO_ANSWER_HELP,
-    _R,
-    _SET_ID_HELP,
-    ANSWER_WINDOW_S,
-    DEFAULT_TIMEOUT_S,
-    LEARN_WINDOW_S,
-    LED_COLOR_NAMES,
-    SERVICE_NAMES,
-    SET_ID_WINDOW_S,
+from bridge.escs.ckesc.results import (
     CanTestResult,
     ExpandResult,
     MaintenanceResponse,
@@ -111,34 +72,52 @@ from bridge.escs.ckesc._setup_common import (
     ScannedEsc,
     SelfTestResult,
     SetIdResult,
-    _check_node,
-    _nodes,
-    led_color_name,
-    scan_warnings,
     value_name,
 )
-from bridge.escs.ckesc._setup_link import ServiceLink
+from bridge.escs.family import EscSetup
 
 __all__ = [
     "ANSWER_WINDOW_S",
     "DEFAULT_TIMEOUT_S",
     "LEARN_WINDOW_S",
-    "LED_COLOR_NAMES",
-    "SERVICE_NAMES",
     "SET_ID_WINDOW_S",
-    "CanTestResult",
     "CkescClient",
-    "ExpandResult",
-    "MaintenanceResponse",
-    "ReportsResult",
-    "ScannedEsc",
-    "SelfTestResult",
-    "SetIdResult",
     "learn_node_ids",
-    "led_color_name",
-    "scan_warnings",
-    "value_name",
 ]
+
+DEFAULT_TIMEOUT_S: Final = 0.5
+"""How long a request waits for its answer."""
+ANSWER_WINDOW_S: Final = 0.064
+"""GET_ESC_ID answers and MSGControl acks come (node_id % 32) x 2 ms late: within 64 ms."""
+LEARN_WINDOW_S: Final = 0.1
+"""How long :func:`learn_node_ids` listens for the answers (all of them by 62 ms)."""
+SET_ID_WINDOW_S: Final = 120
+"""An ESC takes Set ID and Set Baud only this long after power-up (seed 4.3.2)."""
+COUNTER_MODULUS: Final = 1 << 32
+"""The CANTest counter is a u32 that wraps."""
+_MAINTENANCE_RESPONSES: Final[dict[int, type[MaintenanceResponse]]] = {
+    0: records.Maintenance0Response,
+    1: records.Maintenance1Response,
+    2: records.Maintenance2Response,
+}
+
+# What Get Major Configuration shows of an Expand Set: command -> part -> (field, value).
+_EXPAND_EFFECTS: Final[dict[int, dict[int, tuple[str, object]]]] = {
+    records.ExpandSetCommand.DIRECTION: {
+        1: ("direction_reversed", False),
+        2: ("direction_reversed", True),
+    },
+    records.ExpandSetCommand.LED: {
+        0: ("led_color", records.LedColor(0)),
+        1: ("led_color", records.LedColor.RED),
+        2: ("led_color", records.LedColor.GREEN),
+        3: ("led_color", records.LedColor.BLUE),
+    },
+    records.ExpandSetCommand.THROTTLE_INTERFACE: {
+        2: ("throttle_source", records.ThrottleSource.PWM_AND_CAN),
+        3: ("throttle_source", records.ThrottleSource.CAN),
+    },
+}
 
 
 class CkescClient(ServiceLink):
@@ -157,7 +136,7 @@ class CkescClient(ServiceLink):
         bus: can.BusABC,
         *,
         timeout_s: float = DEFAULT_TIMEOUT_S,
-        host_node: int = ckesc.HOST_NODE_ID,
+        host_node: int = records.HOST_NODE_ID,
     ) -> None:
         if not (0 < timeout_s < math.inf):
             raise ValueError(f"timeout_s={timeout_s!r}: expected a number of seconds > 0")
@@ -170,21 +149,23 @@ class CkescClient(ServiceLink):
 
     # -- discovery --------------------------------------------------------------------------
 
-    def find_escs(self, window_s: float | None = None) -> list[GetEscIdAnswer]:
+    def find_escs(self, window_s: float | None = None) -> list[records.GetEscIdAnswer]:
         """Every GET_ESC_ID answer, in arrival order (an ID shared by two ESCs comes twice),
         read for ``window_s`` (default: :data:`ANSWER_WINDOW_S` and the timeout).
 
         Raises:
             LinkError: the bus failed.
         """
-        request = self._broadcast(GetEscIdRequest())
+        request = self._broadcast(records.GetEscIdRequest())
         self._drain()
         self._send(request, "GET_ESC_ID")
         frames = self._collect(
             ANSWER_WINDOW_S + self.timeout_s if window_s is None else window_s,
-            lambda frame: isinstance(frame.message, GetEscIdAnswer),
+            lambda frame: isinstance(frame.message, records.GetEscIdAnswer),
         )
-        return [frame.message for frame in frames if isinstance(frame.message, GetEscIdAnswer)]
+        return [
+            frame.message for frame in frames if isinstance(frame.message, records.GetEscIdAnswer)
+        ]
 
     def scan(self) -> list[ScannedEsc]:
         """Every ESC on the bus (GET_ESC_ID) with its information and major configuration,
@@ -203,8 +184,8 @@ class CkescClient(ServiceLink):
                 problem = f"{count[node]} ESCs answer as node {node}: not asked for details"
                 escs.append(ScannedEsc(node, channel, problem=problem))
                 continue
-            info: EscInfoResponse | None = None
-            config: MajorConfigResponse | None = None
+            info: records.EscInfoResponse | None = None
+            config: records.MajorConfigResponse | None = None
             try:
                 info = self.info(node)
                 config = self.major_config(node)
@@ -217,8 +198,11 @@ class CkescClient(ServiceLink):
     # -- the services -----------------------------------------------------------------------
 
     def request(
-        self, node_id: int, message: CkescMessage, response_type: type[_R] | tuple[type[_R], ...]
-    ) -> _R:
+        self,
+        node_id: int,
+        message: records.CkescMessage,
+        response_type: type[R] | tuple[type[R], ...],
+    ) -> R:
         """Send the service request ``message`` to ``node_id``; its checked response.
 
         Raises:
@@ -239,18 +223,18 @@ class CkescClient(ServiceLink):
             RefusedError: the ESC answers with other values (outside its 120 s window).
             LinkError: the bus failed.
         """
-        request = SetIdRequest(node_id, throttle_channel)
+        request = records.SetIdRequest(node_id, throttle_channel)
         # The values are checked before the scan puts anything on the bus.
-        ckesc.encode(CkescFrame(0, self.host_node, ckesc.FACTORY_NODE_ID, 0, request))
+        codec.encode(codec.CkescFrame(0, self.host_node, records.FACTORY_NODE_ID, 0, request))
         answers = self.find_escs()
         if not answers:
             window = ANSWER_WINDOW_S + self.timeout_s
             raise NoAnswerError(
                 f"no ESC answered GET_ESC_ID within {window:.3g} s, so Set ID was not sent; "
-                f"{_NO_ANSWER_HELP} Note: {_SET_ID_HELP}"
+                f"{NO_ANSWER_HELP} Note: {SET_ID_HELP}"
             )
         if len(answers) > 1:
-            listed = _nodes(answer.node_id for answer in answers)
+            listed = nodes_text(answer.node_id for answer in answers)
             raise SetupError(
                 f"{len(answers)} ESCs answered GET_ESC_ID (nodes {listed}): Set ID reaches "
                 "every ESC on the bus, so it was not sent; connect only the ESC to set up"
@@ -259,14 +243,14 @@ class CkescClient(ServiceLink):
         msg, transfer_id = self._service_frame(old.node_id, request)
         try:
             response = self._ask(
-                msg, transfer_id, old.node_id, {old.node_id, node_id}, SetIdResponse
+                msg, transfer_id, old.node_id, {old.node_id, node_id}, records.SetIdResponse
             )
         except NoAnswerError as exc:
-            raise type(exc)(f"{exc}; {_SET_ID_HELP}") from None
+            raise type(exc)(f"{exc}; {SET_ID_HELP}") from None
         got = (response.node_id, response.throttle_channel)
         if got != (node_id, throttle_channel):
             self._refused(
-                ckesc.SERVICE_SET_ID,
+                records.SERVICE_SET_ID,
                 old.node_id,
                 f"node {node_id} channel {throttle_channel}",
                 f"node {got[0]} channel {got[1]}",
@@ -282,24 +266,26 @@ class CkescClient(ServiceLink):
             RefusedError: the ESC keeps another (outside its 120 s window).
             NoAnswerError, LinkError: as :meth:`request`.
         """
-        rates = ckesc.BAUD_RATES_BPS
+        rates = records.BAUD_RATES_BPS
         if bitrate not in rates:
             raise ValueRangeError(
                 f"bitrate = {bitrate!r} is not one of {', '.join(map(str, rates))}"
             )
-        response = self.request(node_id, SetBaudRequest(rates.index(bitrate)), SetBaudResponse)
+        response = self.request(
+            node_id, records.SetBaudRequest(rates.index(bitrate)), records.SetBaudResponse
+        )
         if response.baud_code != rates.index(bitrate):
             kept = (
                 f"{rates[response.baud_code]} bit/s"
                 if response.baud_code < len(rates)
                 else f"code {response.baud_code}"
             )
-            self._refused(ckesc.SERVICE_SET_BAUD, node_id, f"{bitrate} bit/s", kept)
+            self._refused(records.SERVICE_SET_BAUD, node_id, f"{bitrate} bit/s", kept)
         return bitrate
 
     def set_led(
-        self, node_id: int, color: LedColor, blink_hz: int = 0, *, save: bool = False
-    ) -> SetLedResponse:
+        self, node_id: int, color: records.LedColor, blink_hz: int = 0, *, save: bool = False
+    ) -> records.SetLedResponse:
         """Set the LED (colour bits, blink 0/1/2/5 Hz), saved as the default with ``save``.
 
         Raises:
@@ -307,29 +293,33 @@ class CkescClient(ServiceLink):
             RefusedError: the ESC shows another (its reports are paused).
             NoAnswerError, LinkError: as :meth:`request`.
         """
-        asked = SetLedRequest(save, color, blink_hz)
-        response = self.request(node_id, asked, SetLedResponse)
+        asked = records.SetLedRequest(save, color, blink_hz)
+        response = self.request(node_id, asked, records.SetLedResponse)
         if (response.color, response.blink_hz) != (asked.color, asked.blink_hz):
             self._refused(
-                ckesc.SERVICE_SET_LED,
+                records.SERVICE_SET_LED,
                 node_id,
                 f"{value_name(asked.color)} blink {asked.blink_hz} Hz",
                 f"{value_name(response.color)} blink {response.blink_hz} Hz",
             )
         return response
 
-    def rotation(self, node_id: int, rotation: Rotation | None = None) -> Rotation | int:
+    def rotation(
+        self, node_id: int, rotation: records.Rotation | None = None
+    ) -> records.Rotation | int:
         """Set the motor direction (saved in flash), or with None ask for it; the direction.
 
         Raises:
             RefusedError: the ESC keeps the other (motor running or reports paused).
             ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
         """
-        asked = Rotation.QUERY if rotation is None else rotation
-        response = self.request(node_id, SetRotationRequest(asked), SetRotationResponse)
+        asked = records.Rotation.QUERY if rotation is None else rotation
+        response = self.request(
+            node_id, records.SetRotationRequest(asked), records.SetRotationResponse
+        )
         if rotation is not None and response.rotation != rotation:
             self._refused(
-                ckesc.SERVICE_SET_ROTATION,
+                records.SERVICE_SET_ROTATION,
                 node_id,
                 value_name(rotation),
                 value_name(response.rotation),
@@ -342,7 +332,7 @@ class CkescClient(ServiceLink):
         msg1_ms: int | None = None,
         msg2_ms: int | None = None,
         msg3_ms: int | None = None,
-    ) -> SetFreqResponse:
+    ) -> records.SetFreqResponse:
         """Read the MSG1/2/3 report intervals, or write those given (20..500 ms, even; the
         others are read first and kept); the intervals in use.
 
@@ -352,22 +342,24 @@ class CkescClient(ServiceLink):
             NoAnswerError, LinkError: as :meth:`request`.
         """
         given = (msg1_ms, msg2_ms, msg3_ms)
-        read = SetFreqRequest(False, 0, 0, 0)
+        read = records.SetFreqRequest(False, 0, 0, 0)
         if all(ms is None for ms in given):
-            return self.request(node_id, read, SetFreqResponse)
+            return self.request(node_id, read, records.SetFreqResponse)
         # Check the values given before anything is sent (20 ms stands in for the others).
         m1, m2, m3 = (20 if ms is None else ms for ms in given)
-        self._service_frame(node_id, SetFreqRequest(True, m1, m2, m3))
+        self._service_frame(node_id, records.SetFreqRequest(True, m1, m2, m3))
         if any(ms is None for ms in given):
-            now = self.request(node_id, read, SetFreqResponse)
+            now = self.request(node_id, read, records.SetFreqResponse)
             m1 = now.msg1_interval_ms if msg1_ms is None else msg1_ms
             m2 = now.msg2_interval_ms if msg2_ms is None else msg2_ms
             m3 = now.msg3_interval_ms if msg3_ms is None else msg3_ms
-        response = self.request(node_id, SetFreqRequest(True, m1, m2, m3), SetFreqResponse)
+        response = self.request(
+            node_id, records.SetFreqRequest(True, m1, m2, m3), records.SetFreqResponse
+        )
         got = (response.msg1_interval_ms, response.msg2_interval_ms, response.msg3_interval_ms)
         if got != (m1, m2, m3):
             self._refused(
-                ckesc.SERVICE_SET_FREQ,
+                records.SERVICE_SET_FREQ,
                 node_id,
                 f"intervals {m1}/{m2}/{m3} ms",
                 "{}/{}/{} ms".format(*got),
@@ -375,8 +367,8 @@ class CkescClient(ServiceLink):
         return response
 
     def throttle_source(
-        self, node_id: int, source: ThrottleSource | None = None
-    ) -> ThrottleSource | int:
+        self, node_id: int, source: records.ThrottleSource | None = None
+    ) -> records.ThrottleSource | int:
         """Set where the ESC takes its throttle from (saved in flash), or with None read it
         (Get Major Configuration); the source in use.
 
@@ -386,10 +378,12 @@ class CkescClient(ServiceLink):
         """
         if source is None:
             return self.major_config(node_id).throttle_source
-        response = self.request(node_id, ThrottleSelectRequest(source), ThrottleSelectResponse)
+        response = self.request(
+            node_id, records.ThrottleSelectRequest(source), records.ThrottleSelectResponse
+        )
         if response.source != source:
             self._refused(
-                ckesc.SERVICE_THROTTLE_SELECT,
+                records.SERVICE_THROTTLE_SELECT,
                 node_id,
                 value_name(source),
                 value_name(response.source),
@@ -402,23 +396,25 @@ class CkescClient(ServiceLink):
         Raises:
             ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
         """
-        response = self.request(node_id, SelfTestRequest(), SelfTestResponse)
+        response = self.request(node_id, records.SelfTestRequest(), records.SelfTestResponse)
         if response.passed:
             return SelfTestResult(node_id, True)
         try:
             counters = self.maintenance(node_id, 2)
         except NoAnswerError:
             return SelfTestResult(node_id, False)
-        fault = counters.self_test_fault if isinstance(counters, Maintenance2Response) else None
+        fault = (
+            counters.self_test_fault if isinstance(counters, records.Maintenance2Response) else None
+        )
         return SelfTestResult(node_id, False, fault)
 
-    def info(self, node_id: int) -> EscInfoResponse:
+    def info(self, node_id: int) -> records.EscInfoResponse:
         """ESC Information (240): cells, current rating, versions, firmware date.
 
         Raises:
             ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
         """
-        return self.request(node_id, EscInfoRequest(), EscInfoResponse)
+        return self.request(node_id, records.EscInfoRequest(), records.EscInfoResponse)
 
     def maintenance(self, node_id: int, option: int) -> MaintenanceResponse:
         """Maintenance Information (241), option 0 (lifetime), 1 (this run) or 2 (counters).
@@ -428,21 +424,21 @@ class CkescClient(ServiceLink):
             NoAnswerError, LinkError: as :meth:`request`; an answer for another option counts
                 as none.
         """
-        message = MaintenanceRequest(option)
+        message = records.MaintenanceRequest(option)
         msg, transfer_id = self._service_frame(node_id, message)
         expected = _MAINTENANCE_RESPONSES[option]
         response = self._ask(msg, transfer_id, node_id, (node_id,), expected)
         return cast(MaintenanceResponse, response)
 
-    def major_config(self, node_id: int) -> MajorConfigResponse:
+    def major_config(self, node_id: int) -> records.MajorConfigResponse:
         """Get Major Configuration (242): direction, throttle source and channel, LED, intervals.
 
         Raises:
             ValueRangeError, NoAnswerError, LinkError: as :meth:`request`.
         """
-        return self.request(node_id, MajorConfigRequest(), MajorConfigResponse)
+        return self.request(node_id, records.MajorConfigRequest(), records.MajorConfigResponse)
 
-    def expand(self, node_id: int, command: ExpandSetCommand, part: int) -> ExpandResult:
+    def expand(self, node_id: int, command: records.ExpandSetCommand, part: int) -> ExpandResult:
         """Send one Expand Set command (no response: the motor beeps) and check what can be
         checked (see the module docstring).
 
@@ -453,17 +449,17 @@ class CkescClient(ServiceLink):
             RefusedError: Get Major Configuration does not show the new setting.
             LinkError: the bus failed.
         """
-        msg, _ = self._service_frame(node_id, ExpandSetRequest(command, part))
-        command = ExpandSetCommand(command)
+        msg, _ = self._service_frame(node_id, records.ExpandSetRequest(command, part))
+        command = records.ExpandSetCommand(command)
         try:
             self.info(node_id)
         except NoAnswerError as exc:
             raise type(exc)(f"{exc}; Expand Set (which has no answer) was not sent") from None
         self._drain()
         self._send(msg, f"Expand Set {command.name} to node {node_id}")
-        if command == ExpandSetCommand.READ_TEMP_RECORD:
-            records = self._temp_records(node_id)
-            return ExpandResult(node_id, command, part, True, records)
+        if command == records.ExpandSetCommand.READ_TEMP_RECORD:
+            temp_records = self._temp_records(node_id)
+            return ExpandResult(node_id, command, part, True, temp_records)
         effect = _EXPAND_EFFECTS.get(command, {}).get(part)
         if effect is None:
             return ExpandResult(node_id, command, part, None)
@@ -472,7 +468,7 @@ class CkescClient(ServiceLink):
         if shown != value:
             what = field.replace("_", " ")
             self._refused(
-                ckesc.SERVICE_EXPAND_SET,
+                records.SERVICE_EXPAND_SET,
                 node_id,
                 f"{value_name(command)} {part} ({what} {value_name(value)})",
                 f"{what} {value_name(shown)} (Get Major Configuration)",
@@ -481,7 +477,9 @@ class CkescClient(ServiceLink):
 
     # -- broadcasts -------------------------------------------------------------------------
 
-    def reports(self, command: MsgControlCommand, node_id: int | None = None) -> ReportsResult:
+    def reports(
+        self, command: records.MsgControlCommand, node_id: int | None = None
+    ) -> ReportsResult:
         """MSGControl to every ESC: PAUSE, RESUME_MSG or RESUME_EXP; the nodes that acked.
 
         Raises:
@@ -490,31 +488,29 @@ class CkescClient(ServiceLink):
             LinkError: the bus failed.
         """
         if node_id is not None:
-            _check_node(node_id)
-        request = self._broadcast(MsgControlRequest(command))
-        what = f"MSGControl {MsgControlCommand(command).name}"
+            check_node(node_id)
+        request = self._broadcast(records.MsgControlRequest(command))
+        what = f"MSGControl {records.MsgControlCommand(command).name}"
         self._drain()
         self._send(request, what)
         window = ANSWER_WINDOW_S + self.timeout_s
         frames = self._collect(
             window,
             lambda frame: (
-                isinstance(frame.message, MsgControlAck)
-                and frame.message.command == MsgControlCommand.ACK
+                isinstance(frame.message, records.MsgControlAck)
+                and frame.message.command == records.MsgControlCommand.ACK
             ),
         )
         acked = tuple(sorted({frame.source_node for frame in frames}))
-        others = f"; acknowledged by node(s) {_nodes(acked)}" if acked else ""
+        others = f"; acknowledged by node(s) {nodes_text(acked)}" if acked else ""
         if node_id is not None and node_id not in acked:
             raise NoAnswerError(
                 f"node {node_id} did not acknowledge {what} within {window:g} s{others}; "
-                + _NO_ANSWER_HELP
+                + NO_ANSWER_HELP
             )
         if not acked:
-            raise NoAnswerError(
-                f"no ESC acknowledged {what} within {window:g} s; {_NO_ANSWER_HELP}"
-            )
-        return ReportsResult(MsgControlCommand(command), acked)
+            raise NoAnswerError(f"no ESC acknowledged {what} within {window:g} s; {NO_ANSWER_HELP}")
+        return ReportsResult(records.MsgControlCommand(command), acked)
 
     def can_test(self, duration_s: float, node_id: int | None = None) -> list[CanTestResult]:
         """Put every ESC in CANTest mode for ``duration_s``, count each one's reports against
@@ -528,20 +524,20 @@ class CkescClient(ServiceLink):
         if not (isinstance(duration_s, int | float) and 0 < duration_s < math.inf):
             raise ValueRangeError(f"duration = {duration_s!r} s is not a time > 0")
         if node_id is not None:
-            _check_node(node_id)
-        enter = self._broadcast(CanTestRequest(CanTestOption.ENTER))
-        leave = self._broadcast(CanTestRequest(CanTestOption.LEAVE))
+            check_node(node_id)
+        enter = self._broadcast(records.CanTestRequest(records.CanTestOption.ENTER))
+        leave = self._broadcast(records.CanTestRequest(records.CanTestOption.LEAVE))
         self._drain()
         self._send(enter, "CANTest enter")
         try:
             frames = self._collect(
-                duration_s, lambda frame: isinstance(frame.message, CanTestReport)
+                duration_s, lambda frame: isinstance(frame.message, records.CanTestReport)
             )
         finally:
             self._send(leave, "CANTest leave")
         counts: dict[int, list[int]] = {}
         for frame in frames:
-            if isinstance(frame.message, CanTestReport):
+            if isinstance(frame.message, records.CanTestReport):
                 counts.setdefault(frame.source_node, []).append(frame.message.count)
         results = [
             CanTestResult(node, len(seen), seen[0], seen[-1], duration_s)
@@ -550,23 +546,25 @@ class CkescClient(ServiceLink):
         ]
         if not results:
             whose = "no ESC" if node_id is None else f"node {node_id}"
-            heard = f" (reports came from node(s) {_nodes(counts)})" if counts else ""
+            heard = f" (reports came from node(s) {nodes_text(counts)})" if counts else ""
             raise NoAnswerError(
-                f"{whose} sent CANTest reports within {duration_s:g} s{heard}; {_NO_ANSWER_HELP}"
+                f"{whose} sent CANTest reports within {duration_s:g} s{heard}; {NO_ANSWER_HELP}"
             )
         return results
 
 
 def learn_node_ids(
-    bus: can.BusABC, channels: Sequence[int], window_s: float = LEARN_WINDOW_S
+    bus: can.BusABC, setup: EscSetup[CkescKeys], window_s: float = LEARN_WINDOW_S
 ) -> dict[int, int]:
     """Ask every CKESC on ``bus`` for its node ID (GET_ESC_ID) and map motors to node IDs:
-    ``{i: node_id}`` for each answering ESC that follows throttle channel ``channels[i]``.
+    ``{i: node_id}`` for each answering ESC that follows output i's throttle channel
+    (``setup.channels``).
 
     Raises:
         LinkError: two ESCs answer with the same throttle channel (they would spin together),
             or the bus failed.
     """
+    channels = setup.channels or setup.keys.ckesc_channels
     found: dict[int, int] = {}
     for answer in CkescClient(bus, timeout_s=window_s).find_escs(window_s):
         if answer.throttle_channel not in channels:

@@ -2,7 +2,7 @@
 
 Longer than 600 lines on purpose: :class:`SimCkesc` is one state machine whose frame
 handlers, services and report streams share its state (flash, clock, pending answers); cut
-into pieces it would read worse. Its constants and helpers are in ``_sim_common.py``.
+into pieces it would read worse. Its constants and helpers come first.
 
 Frames in (:meth:`SimCkesc.handle`), time in (:meth:`SimCkesc.poll`), frames out; no bus, no
 thread, no sleeping. Every frame goes through the production codec (:mod:`bridge.escs.ckesc`),
@@ -108,100 +108,229 @@ Decisions where the spec is silent
 from __future__ import annotations
 
 import copy
+import enum
 import math
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Final
 
 import can
 
 from bridge.errors import FrameError
-from bridge.escs import ckesc, uavcan_v0
-from bridge.escs.ckesc import (
-    CanTestOption,
-    CanTestReport,
-    CanTestRequest,
-    CkescFrame,
-    CkescMessage,
-    EscInfoRequest,
-    ExpandSetCommand,
-    ExpandSetRequest,
-    GetEscIdAnswer,
-    GetEscIdRequest,
-    LedColor,
-    Maintenance0Response,
-    Maintenance1Response,
-    Maintenance2Response,
-    MaintenanceRequest,
-    MajorConfigRequest,
-    MajorConfigResponse,
-    Msg1,
-    Msg1Status,
-    Msg2,
-    Msg3,
-    MsgControlAck,
-    MsgControlRequest,
-    MsgExp1,
-    MsgExp7,
-    MsgExp8,
-    MsgExp9,
-    MsgExp10,
-    MsgExp11,
-    MsgExp12,
-    RawCommand10b,
-    RawCommand12b,
-    RawCommand14b,
-    Rotation,
-    SelfTestFault,
-    SelfTestRequest,
-    SelfTestResponse,
-    SetBaudRequest,
-    SetBaudResponse,
-    SetFreqRequest,
-    SetFreqResponse,
-    SetIdRequest,
-    SetIdResponse,
-    SetLedRequest,
-    SetLedResponse,
-    SetRotationRequest,
-    SetRotationResponse,
-    TempRecordKind,
-    ThrottleSelectRequest,
-    ThrottleSelectResponse,
-    ThrottleSource,
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec, records
+from bridge.escs.ckesc.keys import CkescKeys
+from bridge.escs.family import EscSetup
+from bridge.sim.base import Faults, SimEsc
+from bridge.sim.motor import Motor, MotorParams
+
+COMMS_TIMEOUT_S: Final = 0.200
+"""No valid CAN throttle for this long: COMMS_FAULT, motor stopped (seed 4.4.4)."""
+SET_ID_WINDOW_S: Final = 120.0
+"""Set ID and Set Baud are accepted only this long after power-up (seed 4.3.2)."""
+ALONE_WINDOW_S: Final = 1.0
+"""Set ID is refused if another ESC was heard within this."""
+ANSWER_DELAY_STEP_S: Final = 0.002
+"""GET_ESC_ID answers and MSGControl acks wait (node_id % 32) times this (seed 4.4.2, 4.4.3)."""
+MAX_STEP_S: Final = 0.050
+"""The longest motor physics step one poll takes (a longer gap is not simulated)."""
+CAN_TEST_INTERVAL_S: Final = 0.002
+"""CANTest report interval in bus test mode (the seed says "continuously")."""
+UNDER_VOLTAGE_PER_CELL_V: Final = 3.0
+OVER_VOLTAGE_PER_CELL_V: Final = 4.35
+CELL_DETECT_V: Final = 4.25
+"""Cells = supply at first power / this, rounded up (a full LiPo cell is 4.2 V)."""
+OVER_TEMPERATURE_C: Final = 110.0
+"""MOSFET temperature above which OVER_TEMPERATURE is set."""
+FAULT_MOS_TEMP_C: Final = 150
+"""MOSFET temperature reported under the over_temperature fault."""
+FAULT_CURRENT_A: Final = 600.0
+"""Bus current reported under the over_current fault (fits the u16 x 0.01 A field)."""
+ESC_INFO: Final = records.EscInfoResponse(
+    max_cells=14,
+    max_current_a=80,
+    hardware_version=1,
+    protocol_version=21,
+    firmware_year=24,
+    firmware_month=10,
+    firmware_day=11,
 )
-from bridge.escs.ckesc._sim_common import (
-    _DEBUG_RECORDS,
-    _EPS_S,
-    _EXP_STREAMS,
-    _EXPAND_LED_COLORS,
-    _EXPAND_NIBBLES,
-    _EXPAND_PARTS,
-    _MSG_STREAMS,
-    _RECORD_KINDS,
-    _REPORT_MODES,
-    _SELF_TEST_BITS,
-    _SERVICE_REQUESTS,
-    ALONE_WINDOW_S,
-    ANSWER_DELAY_STEP_S,
-    CAN_TEST_INTERVAL_S,
-    CELL_DETECT_V,
-    COMMS_TIMEOUT_S,
-    ESC_INFO,
-    FAULT_CURRENT_A,
-    FAULT_MOS_TEMP_C,
-    MAX_STEP_S,
-    OVER_TEMPERATURE_C,
-    OVER_VOLTAGE_PER_CELL_V,
-    SET_ID_WINDOW_S,
-    UNDER_VOLTAGE_PER_CELL_V,
-    ReportMode,
-    SimCkescStats,
-    _clamp_centi,
-    _clamp_u8,
-    _corrupt,
-    default_flash,
+"""What the simulated ESC says of itself (ESC Information, 240): a 14S 80 A ESC, protocol 2.1."""
+
+# Float tolerance for clock comparisons: poll times built from 1 ms steps do not land exactly
+# on 20 ms or 200 ms.
+_EPS_S: Final = 1e-6
+_U8_MAX: Final = 0xFF
+_CENTI_MAX: Final = 655.35
+_RECORD_KINDS: Final = {
+    records.TempRecordKind.MCU: "mcu",
+    records.TempRecordKind.MOS: "mos",
+    records.TempRecordKind.CAPACITOR: "capacitor",
+    records.TempRecordKind.MOTOR: "motor",
+}
+
+# Self-test fault code 1 -> MSG1 status bit.
+_SELF_TEST_BITS: Final = {
+    records.SelfTestFault.COM_LOW: records.Msg1Status.SELF_TEST_COM_INPUT_LOW,
+    records.SelfTestFault.COM_HIGH: records.Msg1Status.SELF_TEST_COM_INPUT_HIGH,
+    records.SelfTestFault.PHASE_A_HIGH: records.Msg1Status.SELF_TEST_PHASE_A_OUTPUT_HIGH,
+    records.SelfTestFault.PHASE_B_HIGH: records.Msg1Status.SELF_TEST_PHASE_B_OUTPUT_HIGH,
+    records.SelfTestFault.PHASE_C_HIGH: records.Msg1Status.SELF_TEST_PHASE_C_OUTPUT_HIGH,
+    records.SelfTestFault.PHASE_A_LOW: records.Msg1Status.SELF_TEST_PHASE_A_OUTPUT_LOW,
+    records.SelfTestFault.PHASE_B_LOW: records.Msg1Status.SELF_TEST_PHASE_B_OUTPUT_LOW,
+    records.SelfTestFault.PHASE_C_LOW: records.Msg1Status.SELF_TEST_PHASE_C_OUTPUT_LOW,
+}
+
+# Expand Set: the parts the ESC acts on (seed 4.4.25), and the flash key each nibble lives in.
+_EXPAND_PARTS: Final[dict[int, range | tuple[int, ...]]] = {
+    records.ExpandSetCommand.DIRECTION: (1, 2),
+    records.ExpandSetCommand.LED: range(4),
+    records.ExpandSetCommand.THROTTLE_INTERFACE: (2, 3),
+    records.ExpandSetCommand.ACTIVE_FREEWHEELING: range(2),
+    records.ExpandSetCommand.TIMING: range(1, 5),
+    records.ExpandSetCommand.TIMING_2: range(1, 5),
+    records.ExpandSetCommand.LOAD_TYPE: range(1, 5),
+    records.ExpandSetCommand.PROP_LOCK: range(4),
+    records.ExpandSetCommand.STARTUP_ACCELERATION: range(16),
+    records.ExpandSetCommand.SIGNAL_LOSS_RATE: range(16),
+    records.ExpandSetCommand.READ_TEMP_RECORD: (1,),
+    records.ExpandSetCommand.BAUD: range(len(records.BAUD_RATES_BPS)),
+    records.ExpandSetCommand.SYSTEM: (0x10, 0x11),
+}
+_EXPAND_NIBBLES: Final = {
+    records.ExpandSetCommand.ACTIVE_FREEWHEELING: "active_freewheeling",
+    records.ExpandSetCommand.TIMING: "timing",
+    records.ExpandSetCommand.TIMING_2: "timing_2",
+    records.ExpandSetCommand.LOAD_TYPE: "load_type",
+    records.ExpandSetCommand.PROP_LOCK: "prop_lock",
+    records.ExpandSetCommand.STARTUP_ACCELERATION: "startup_acceleration",
+    records.ExpandSetCommand.SIGNAL_LOSS_RATE: "signal_loss_rate",
+}
+# Expand Set LED part (and MSG_EXP7's LED nibble) <-> Set LED colour bits.
+_EXPAND_LED_COLORS: Final = (
+    records.LedColor(0),
+    records.LedColor.RED,
+    records.LedColor.GREEN,
+    records.LedColor.BLUE,
 )
-from bridge.sim.base import Faults
-from bridge.sim.motor import Motor
+
+_MSG_STREAMS: Final = (
+    (records.TYPE_MSG1, "msg1_interval_ms"),
+    (records.TYPE_MSG2, "msg2_interval_ms"),
+    (records.TYPE_MSG3, "msg3_interval_ms"),
+)
+_EXP_STREAMS: Final = (
+    (records.TYPE_MSG_EXP1, "msg1_interval_ms"),
+    (records.TYPE_MSG_EXP2, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP3, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP4, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP5, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP6, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP11, "msg2_interval_ms"),
+    (records.TYPE_MSG_EXP7, "msg3_interval_ms"),
+    (records.TYPE_MSG_EXP8, "msg3_interval_ms"),
+    (records.TYPE_MSG_EXP9, "msg3_interval_ms"),
+    (records.TYPE_MSG_EXP10, "msg3_interval_ms"),
+)
+_DEBUG_RECORDS: Final[dict[int, Callable[[bytes], records.CkescMessage]]] = {
+    records.TYPE_MSG_EXP2: records.MsgExp2,
+    records.TYPE_MSG_EXP3: records.MsgExp3,
+    records.TYPE_MSG_EXP4: records.MsgExp4,
+    records.TYPE_MSG_EXP5: records.MsgExp5,
+    records.TYPE_MSG_EXP6: records.MsgExp6,
+}
+
+
+class ReportMode(enum.Enum):
+    """Which periodic reports the ESC sends (MSGControl)."""
+
+    MSG = "msg"
+    """MSG1..MSG3 (power-up)."""
+    EXP = "exp"
+    """MSG_EXP1..MSG_EXP11 instead."""
+    PAUSED = "paused"
+
+
+_REPORT_MODES: Final[dict[int, ReportMode]] = {
+    records.MsgControlCommand.PAUSE: ReportMode.PAUSED,
+    records.MsgControlCommand.RESUME_MSG: ReportMode.MSG,
+    records.MsgControlCommand.RESUME_EXP: ReportMode.EXP,
+}
+_SERVICE_REQUESTS: Final = (
+    records.SetIdRequest,
+    records.SetBaudRequest,
+    records.SetLedRequest,
+    records.SetRotationRequest,
+    records.SetFreqRequest,
+    records.ThrottleSelectRequest,
+    records.SelfTestRequest,
+    records.EscInfoRequest,
+    records.MaintenanceRequest,
+    records.MajorConfigRequest,
+)
+
+
+@dataclass
+class SimCkescStats:
+    """Counters of one simulated CKESC ESC."""
+
+    commands: int = 0
+    """Valid throttle commands for this ESC's channel."""
+    bad_frames: int = 0
+    """Frames from the host that claim to be CKESC's but are malformed, RawCommand_12b frames
+    for a group outside 1..5, and out-of-range throttles on this ESC's channel."""
+    requests: int = 0
+    """Service requests to this ESC (answered or not)."""
+    refused: int = 0
+    """Requests refused (not applied), Expand Set included."""
+    comms_faults: int = 0
+    """Times the 200 ms comms timeout struck."""
+
+
+def default_flash(
+    node_id: int = records.FACTORY_NODE_ID, throttle_channel: int = 1
+) -> dict[str, Any]:
+    """A factory-fresh flash (see the module docstring for the keys), with this ID and channel."""
+    return {
+        "node_id": node_id,
+        "throttle_channel": throttle_channel,
+        "baud_code": 1,
+        "led_color": int(records.LedColor.GREEN),
+        "led_blink_hz": 0,
+        "rotation": 0,
+        "msg1_interval_ms": 20,
+        "msg2_interval_ms": 100,
+        "msg3_interval_ms": 500,
+        "throttle_source": int(records.ThrottleSource.CAN),
+        "active_freewheeling": 1,
+        "timing": 2,
+        "timing_2": 2,
+        "load_type": 2,
+        "prop_lock": 0,
+        "startup_acceleration": 8,
+        "signal_loss_rate": 8,
+        "power_on_count": 0,
+        "start_count": 0,
+        "stop_count": 0,
+        "total_run_time_s": 0.0,
+        "temp_records": {name: [0, 0, 0] for name in _RECORD_KINDS.values()},
+    }
+
+
+def _clamp_u8(value: float) -> int:
+    return max(0, min(_U8_MAX, round(value)))
+
+
+def _clamp_centi(value: float) -> float:
+    return max(0.0, min(_CENTI_MAX, value)) if not math.isnan(value) else 0.0
+
+
+def _corrupt(msg: can.Message) -> can.Message:
+    """The frame with its tail byte's start-of-transfer bit cleared (not a CKESC transfer)."""
+    data = bytearray(msg.data)
+    data[-1] ^= 0x80
+    return can.Message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=True)
+
 
 __all__ = [
     "ALONE_WINDOW_S",
@@ -219,6 +348,7 @@ __all__ = [
     "SimCkesc",
     "SimCkescStats",
     "default_flash",
+    "simulators",
 ]
 
 
@@ -245,9 +375,9 @@ class SimCkesc:
     ) -> None:
         if not 1 <= node_id <= uavcan_v0.MAX_NODE_ID:
             raise ValueError(f"node_id={node_id!r} outside 1..{uavcan_v0.MAX_NODE_ID}")
-        if not 1 <= throttle_channel <= ckesc.MAX_CHANNELS:
+        if not 1 <= throttle_channel <= records.MAX_CHANNELS:
             raise ValueError(
-                f"throttle_channel={throttle_channel!r} outside 1..{ckesc.MAX_CHANNELS}"
+                f"throttle_channel={throttle_channel!r} outside 1..{records.MAX_CHANNELS}"
             )
         self.flash: dict[str, Any] = flash if flash is not None else {}
         """The settings "in flash": the caller's dict, updated in place as settings are saved."""
@@ -262,12 +392,12 @@ class SimCkesc:
         self.power_on_s = power_on_s
         self.baud_code: int = int(self.flash["baud_code"])
         """The bit rate in use (Set Baud codes 0..6): the flash's at power-up."""
-        self.led_color = LedColor(int(self.flash["led_color"]) & 0x07)
+        self.led_color = records.LedColor(int(self.flash["led_color"]) & 0x07)
         """The LED colour shown now (a Set LED without save changes only this)."""
         self.led_blink_hz: int = int(self.flash["led_blink_hz"])
         self.pwm_throttle: int | None = None
         """The PWM input, 0..2000, or None for no PWM signal (used only in PWM+CAN mode)."""
-        self.self_test_fault: SelfTestFault | int = SelfTestFault.NONE
+        self.self_test_fault: records.SelfTestFault | int = records.SelfTestFault.NONE
         """Power-on self-test fault code 1 (0: passed); set it to simulate a failed test."""
         self.fault_code_2 = 0
         """Self-test fault code 2 (undefined by the seed)."""
@@ -309,8 +439,8 @@ class SimCkesc:
         return int(self.flash["rotation"]) == 1
 
     @property
-    def throttle_source(self) -> ThrottleSource:
-        return ThrottleSource(int(self.flash["throttle_source"]))
+    def throttle_source(self) -> records.ThrottleSource:
+        return records.ThrottleSource(int(self.flash["throttle_source"]))
 
     @property
     def intervals_ms(self) -> tuple[int, int, int]:
@@ -329,7 +459,7 @@ class SimCkesc:
         return int(self._run_time_s())
 
     @property
-    def status(self) -> Msg1Status:
+    def status(self) -> records.Msg1Status:
         """MSG1's status word as of the last poll."""
         return self._status()
 
@@ -347,7 +477,7 @@ class SimCkesc:
             return []
         can_id: int = msg.arbitration_id
         source = can_id & 0x7F
-        if source != ckesc.HOST_NODE_ID:
+        if source != records.HOST_NODE_ID:
             if source != self.node_id:
                 self._others[source] = now_s
             return []
@@ -358,7 +488,7 @@ class SimCkesc:
                 out = self._temp_record_request(can_id >> 16 & 0xFF)
         else:
             try:
-                frame = ckesc.decode(msg)
+                frame = codec.decode(msg)
             except FrameError:
                 self.stats.bad_frames += 1
                 return []
@@ -366,34 +496,38 @@ class SimCkesc:
                 out = self._dispatch(frame, now_s)
         return [] if self.faults.silent else out
 
-    def _dispatch(self, frame: CkescFrame, now_s: float) -> list[can.Message]:
+    def _dispatch(self, frame: codec.CkescFrame, now_s: float) -> list[can.Message]:
         message = frame.message
-        if isinstance(message, RawCommand12b | RawCommand14b | RawCommand10b):
+        if isinstance(
+            message, records.RawCommand12b | records.RawCommand14b | records.RawCommand10b
+        ):
             self._throttle_command(message, now_s)
             return []
-        if isinstance(message, MsgControlRequest):
+        if isinstance(message, records.MsgControlRequest):
             return self._msg_control(message, now_s)
-        if isinstance(message, GetEscIdRequest):
-            return self._answer_later(GetEscIdAnswer(self.node_id, self.throttle_channel), now_s)
-        if isinstance(message, CanTestRequest):
+        if isinstance(message, records.GetEscIdRequest):
+            return self._answer_later(
+                records.GetEscIdAnswer(self.node_id, self.throttle_channel), now_s
+            )
+        if isinstance(message, records.CanTestRequest):
             self._can_test(message)
             return []
-        if not isinstance(message, (*_SERVICE_REQUESTS, ExpandSetRequest)):
+        if not isinstance(message, (*_SERVICE_REQUESTS, records.ExpandSetRequest)):
             return []  # an ESC's record sent from node 0: nothing to act on
-        if frame.destination_node != self.node_id and not isinstance(message, SetIdRequest):
+        if frame.destination_node != self.node_id and not isinstance(message, records.SetIdRequest):
             return []
         self.stats.requests += 1
-        if isinstance(message, ExpandSetRequest):
+        if isinstance(message, records.ExpandSetRequest):
             return self._expand_set(message)
         answer = self._serve(message, now_s)
         if answer is None or frame.transfer_id is None:
             return []
         return [
-            ckesc.encode(
-                CkescFrame(
-                    priority=ckesc.default_priority(answer),
+            codec.encode(
+                codec.CkescFrame(
+                    priority=codec.default_priority(answer),
                     source_node=self.node_id,
-                    destination_node=ckesc.HOST_NODE_ID,
+                    destination_node=records.HOST_NODE_ID,
                     transfer_id=frame.transfer_id,
                     message=answer,
                 )
@@ -403,20 +537,22 @@ class SimCkesc:
     # -- throttle -------------------------------------------------------------------------------
 
     def _throttle_command(
-        self, message: RawCommand12b | RawCommand14b | RawCommand10b, now_s: float
+        self,
+        message: records.RawCommand12b | records.RawCommand14b | records.RawCommand10b,
+        now_s: float,
     ) -> None:
         channel = self.throttle_channel
-        if isinstance(message, RawCommand12b):
-            if not 1 <= message.group <= ckesc.MAX_GROUP:
+        if isinstance(message, records.RawCommand12b):
+            if not 1 <= message.group <= records.MAX_GROUP:
                 self.stats.bad_frames += 1
                 return
-            first = ckesc.CHANNELS_PER_GROUP * (message.group - 1) + 1
+            first = records.CHANNELS_PER_GROUP * (message.group - 1) + 1
             values: tuple[int, ...] = message.throttles
-            limit, scale = ckesc.THROTTLE_MAX, 1
-        elif isinstance(message, RawCommand14b):
-            first, values, limit, scale = 1, message.throttles, ckesc.THROTTLE_MAX, 1
+            limit, scale = records.THROTTLE_MAX, 1
+        elif isinstance(message, records.RawCommand14b):
+            first, values, limit, scale = 1, message.throttles, records.THROTTLE_MAX, 1
         else:
-            first, values, limit, scale = 1, message.throttles, ckesc.THROTTLE_10B_MAX, 2
+            first, values, limit, scale = 1, message.throttles, records.THROTTLE_10B_MAX, 2
         index = channel - first
         if not 0 <= index < len(values):
             return  # not our channel
@@ -436,7 +572,7 @@ class SimCkesc:
         pwm = self._pwm_input()
         self._using_pwm = pwm is not None
         if pwm is not None:
-            applied = max(0, min(ckesc.THROTTLE_MAX, pwm))
+            applied = max(0, min(records.THROTTLE_MAX, pwm))
         else:
             applied = 0 if self._comms_fault else self._can_throttle
         if applied and not self._applied:
@@ -444,12 +580,12 @@ class SimCkesc:
         elif self._applied and not applied and normal:
             self.flash["stop_count"] = int(self.flash["stop_count"]) + 1
         self._applied = applied
-        duty = applied / ckesc.THROTTLE_MAX
+        duty = applied / records.THROTTLE_MAX
         self.motor.set_duty(-duty if self.reversed else duty)
 
     def _pwm_input(self) -> int | None:
         """The PWM throttle if it is the one in use (PWM+CAN mode with a PWM signal)."""
-        if self.throttle_source == ThrottleSource.PWM_AND_CAN:
+        if self.throttle_source == records.ThrottleSource.PWM_AND_CAN:
             return self.pwm_throttle
         return None
 
@@ -458,14 +594,14 @@ class SimCkesc:
 
     # -- reports control, GET_ESC_ID, CANTest -------------------------------------------------
 
-    def _answer_later(self, answer: CkescMessage, now_s: float) -> list[can.Message]:
+    def _answer_later(self, answer: records.CkescMessage, now_s: float) -> list[can.Message]:
         """Queue ``answer`` for (node_id % 32) x 2 ms from now; [the frame] if that is now."""
-        frame = ckesc.encode(
-            CkescFrame(
-                priority=ckesc.default_priority(answer),
+        frame = codec.encode(
+            codec.CkescFrame(
+                priority=codec.default_priority(answer),
                 source_node=self.node_id,
                 destination_node=None,
-                transfer_id=self._tids.next(ckesc.type_id_of(answer)),
+                transfer_id=self._tids.next(codec.type_id_of(answer)),
                 message=answer,
             )
         )
@@ -481,20 +617,20 @@ class SimCkesc:
             self._pending = [(w, f) for w, f in self._pending if w > now_s + _EPS_S]
         return due
 
-    def _msg_control(self, message: MsgControlRequest, now_s: float) -> list[can.Message]:
+    def _msg_control(self, message: records.MsgControlRequest, now_s: float) -> list[can.Message]:
         mode = _REPORT_MODES.get(message.command)
         if mode is None:
             return []
         if mode != self.report_mode:
             self.report_mode = mode
             self._due.clear()
-        return self._answer_later(MsgControlAck(), now_s)
+        return self._answer_later(records.MsgControlAck(), now_s)
 
-    def _can_test(self, message: CanTestRequest) -> None:
-        if message.option == CanTestOption.ENTER and not self.can_test_mode:
+    def _can_test(self, message: records.CanTestRequest) -> None:
+        if message.option == records.CanTestOption.ENTER and not self.can_test_mode:
             self.can_test_mode = True
             self._due.clear()
-        elif message.option == CanTestOption.LEAVE and self.can_test_mode:
+        elif message.option == records.CanTestOption.LEAVE and self.can_test_mode:
             self.can_test_mode = False
             self._due.clear()
 
@@ -503,14 +639,14 @@ class SimCkesc:
     def _refuse(self) -> None:
         self.stats.refused += 1
 
-    def _serve(self, message: CkescMessage, now_s: float) -> CkescMessage | None:
+    def _serve(self, message: records.CkescMessage, now_s: float) -> records.CkescMessage | None:
         """The response to a request to this node (applying it if allowed), None: no answer."""
         f = self.flash
         reports_on = self.report_mode != ReportMode.PAUSED
-        if isinstance(message, SetIdRequest):
+        if isinstance(message, records.SetIdRequest):
             if (
                 1 <= message.node_id <= uavcan_v0.MAX_NODE_ID
-                and 1 <= message.throttle_channel <= ckesc.MAX_CHANNELS
+                and 1 <= message.throttle_channel <= records.MAX_CHANNELS
                 and self._in_window(now_s)
                 and self._alone(now_s)
             ):
@@ -518,34 +654,36 @@ class SimCkesc:
                 self.throttle_channel = f["throttle_channel"] = message.throttle_channel
             else:
                 self._refuse()
-            return SetIdResponse(self.node_id, self.throttle_channel)
-        if isinstance(message, SetBaudRequest):
-            if message.baud_code in range(len(ckesc.BAUD_RATES_BPS)) and self._in_window(now_s):
+            return records.SetIdResponse(self.node_id, self.throttle_channel)
+        if isinstance(message, records.SetBaudRequest):
+            if message.baud_code in range(len(records.BAUD_RATES_BPS)) and self._in_window(now_s):
                 f["baud_code"] = message.baud_code
             else:
                 self._refuse()
-            return SetBaudResponse(int(f["baud_code"]))
-        if isinstance(message, SetLedRequest):
+            return records.SetBaudResponse(int(f["baud_code"]))
+        if isinstance(message, records.SetLedRequest):
             if reports_on:
-                self.led_color = LedColor(int(message.color) & 0x07)
+                self.led_color = records.LedColor(int(message.color) & 0x07)
                 blink = message.blink_hz
                 self.led_blink_hz = blink if blink in (0, 1, 2, 5) else 0
                 if message.save:
                     f["led_color"], f["led_blink_hz"] = int(self.led_color), self.led_blink_hz
             else:
                 self._refuse()
-            return SetLedResponse(message.save, self.led_color, self.led_blink_hz)
-        if isinstance(message, SetRotationRequest):
-            if message.rotation in (Rotation.NORMAL, Rotation.REVERSED):
+            return records.SetLedResponse(message.save, self.led_color, self.led_blink_hz)
+        if isinstance(message, records.SetRotationRequest):
+            if message.rotation in (records.Rotation.NORMAL, records.Rotation.REVERSED):
                 if reports_on and self._stopped():
                     f["rotation"] = int(message.rotation)
                     self._apply()
                 else:
                     self._refuse()
-            elif message.rotation != Rotation.QUERY:
+            elif message.rotation != records.Rotation.QUERY:
                 self._refuse()
-            return SetRotationResponse(Rotation.REVERSED if self.reversed else Rotation.NORMAL)
-        if isinstance(message, SetFreqRequest):
+            return records.SetRotationResponse(
+                records.Rotation.REVERSED if self.reversed else records.Rotation.NORMAL
+            )
+        if isinstance(message, records.SetFreqRequest):
             wanted = (message.msg1_interval_ms, message.msg2_interval_ms, message.msg3_interval_ms)
             if message.write:
                 if all(20 <= ms <= 500 and ms % 2 == 0 for ms in wanted):
@@ -553,24 +691,29 @@ class SimCkesc:
                     self._due.clear()
                 else:
                     self._refuse()
-            return SetFreqResponse(message.write, *self.intervals_ms)
-        if isinstance(message, ThrottleSelectRequest):
-            known = message.source in (ThrottleSource.CAN, ThrottleSource.PWM_AND_CAN)
+            return records.SetFreqResponse(message.write, *self.intervals_ms)
+        if isinstance(message, records.ThrottleSelectRequest):
+            known = message.source in (
+                records.ThrottleSource.CAN,
+                records.ThrottleSource.PWM_AND_CAN,
+            )
             if known and self._applied == 0:
                 f["throttle_source"] = int(message.source)
                 self._apply()
             else:
                 self._refuse()
-            return ThrottleSelectResponse(self.throttle_source)
-        if isinstance(message, SelfTestRequest):
-            return SelfTestResponse(passed=self.self_test_fault == SelfTestFault.NONE)
-        if isinstance(message, EscInfoRequest):
+            return records.ThrottleSelectResponse(self.throttle_source)
+        if isinstance(message, records.SelfTestRequest):
+            return records.SelfTestResponse(
+                passed=self.self_test_fault == records.SelfTestFault.NONE
+            )
+        if isinstance(message, records.EscInfoRequest):
             return ESC_INFO
-        if isinstance(message, MaintenanceRequest):
+        if isinstance(message, records.MaintenanceRequest):
             return self._maintenance(message.option)
-        if isinstance(message, MajorConfigRequest):
+        if isinstance(message, records.MajorConfigRequest):
             m1, m2, m3 = self.intervals_ms
-            return MajorConfigResponse(
+            return records.MajorConfigResponse(
                 direction_reversed=self.reversed,
                 throttle_source=self.throttle_source,
                 throttle_channel=self.throttle_channel,
@@ -582,19 +725,19 @@ class SimCkesc:
             )
         return None  # a response or a host-only record: not a request to serve
 
-    def _maintenance(self, option: int) -> CkescMessage | None:
+    def _maintenance(self, option: int) -> records.CkescMessage | None:
         f = self.flash
         if option == 0:
-            records = f["temp_records"]
-            return Maintenance0Response(
+            temp_records = f["temp_records"]
+            return records.Maintenance0Response(
                 total_run_time_s=self._total_run_time_s(),
-                max_mos_temp_c=int(records["mos"][0]),
-                max_capacitor_temp_c=int(records["capacitor"][0]),
+                max_mos_temp_c=int(temp_records["mos"][0]),
+                max_capacitor_temp_c=int(temp_records["capacitor"][0]),
             )
         if option == 1:
-            return Maintenance1Response(self.run_time_s, self._run_count())
+            return records.Maintenance1Response(self.run_time_s, self._run_count())
         if option == 2:
-            return Maintenance2Response(
+            return records.Maintenance2Response(
                 power_on_count=int(f["power_on_count"]) & 0xFFFF,
                 stop_count=int(f["stop_count"]) & 0xFFFF,
                 self_test_fault=self.self_test_fault,
@@ -612,7 +755,7 @@ class SimCkesc:
             if node != self.node_id
         )
 
-    def _expand_set(self, message: ExpandSetRequest) -> list[can.Message]:
+    def _expand_set(self, message: records.ExpandSetRequest) -> list[can.Message]:
         command, part = int(message.command), message.part
         allowed = _EXPAND_PARTS.get(command)
         if allowed is None or part not in allowed or not self._stopped():
@@ -620,29 +763,29 @@ class SimCkesc:
             return []
         self.beeps += 1
         f = self.flash
-        if command == ExpandSetCommand.DIRECTION:
+        if command == records.ExpandSetCommand.DIRECTION:
             f["rotation"] = part - 1
             self._apply()
-        elif command == ExpandSetCommand.LED:
+        elif command == records.ExpandSetCommand.LED:
             self.led_color = _EXPAND_LED_COLORS[part]
             f["led_color"] = int(self.led_color)
-        elif command == ExpandSetCommand.THROTTLE_INTERFACE:
+        elif command == records.ExpandSetCommand.THROTTLE_INTERFACE:
             f["throttle_source"] = int(
-                ThrottleSource.PWM_AND_CAN if part == 2 else ThrottleSource.CAN
+                records.ThrottleSource.PWM_AND_CAN if part == 2 else records.ThrottleSource.CAN
             )
             self._apply()
-        elif command == ExpandSetCommand.READ_TEMP_RECORD:
+        elif command == records.ExpandSetCommand.READ_TEMP_RECORD:
             return self._temp_records()
-        elif command == ExpandSetCommand.BAUD:
+        elif command == records.ExpandSetCommand.BAUD:
             f["baud_code"] = part
-        elif command == ExpandSetCommand.SYSTEM:
+        elif command == records.ExpandSetCommand.SYSTEM:
             self.debug_mode = part == 0x11
         else:
-            f[_EXPAND_NIBBLES[ExpandSetCommand(command)]] = part
+            f[_EXPAND_NIBBLES[records.ExpandSetCommand(command)]] = part
         return []
 
     def _temp_record_request(self, service_type: int) -> list[can.Message]:
-        if service_type == ckesc.SERVICE_GET_TEMP_RECORD:
+        if service_type == records.SERVICE_GET_TEMP_RECORD:
             return self._temp_records()
         self.flash["temp_records"] = {name: [0, 0, 0] for name in _RECORD_KINDS.values()}
         return []
@@ -651,7 +794,7 @@ class SimCkesc:
         out = []
         for kind, name in _RECORD_KINDS.items():
             max_temp, run_count, run_time = self.flash["temp_records"][name]
-            record = MsgExp12(kind, int(max_temp), int(run_count) & 0xFFFF, int(run_time))
+            record = records.MsgExp12(kind, int(max_temp), int(run_count) & 0xFFFF, int(run_time))
             out.append(self._broadcast(record, None))
         return out
 
@@ -675,10 +818,10 @@ class SimCkesc:
         self._apply(normal=not self._comms_fault)
         self.flash["total_run_time_s"] = self._total_run_base_s + self._run_time_s()
         temps = self._temperatures()
-        self._record(TempRecordKind.MOS, temps[0])
-        self._record(TempRecordKind.CAPACITOR, temps[1])
-        self._record(TempRecordKind.MOTOR, temps[2])
-        self._record(TempRecordKind.MCU, temps[3])
+        self._record(records.TempRecordKind.MOS, temps[0])
+        self._record(records.TempRecordKind.CAPACITOR, temps[1])
+        self._record(records.TempRecordKind.MOTOR, temps[2])
+        self._record(records.TempRecordKind.MCU, temps[3])
         out = self._take_pending(now_s) + self._reports(now_s)
         return [] if self.faults.silent else out
 
@@ -701,15 +844,15 @@ class SimCkesc:
     def _run_count(self) -> int:
         return int(self.flash["power_on_count"]) & 0xFFFF
 
-    def _record(self, kind: TempRecordKind, temp_c: int) -> None:
+    def _record(self, kind: records.TempRecordKind, temp_c: int) -> None:
         record = self.flash["temp_records"][_RECORD_KINDS[kind]]
         if temp_c > record[0]:
             record[:] = [temp_c, self._run_count(), self.run_time_s]
 
     def _reports(self, now_s: float) -> list[can.Message]:
         if self.can_test_mode:
-            return self._stream(ckesc.TYPE_CAN_TEST, CAN_TEST_INTERVAL_S, now_s)
-        if self.node_id == ckesc.FACTORY_NODE_ID or self.report_mode == ReportMode.PAUSED:
+            return self._stream(records.TYPE_CAN_TEST, CAN_TEST_INTERVAL_S, now_s)
+        if self.node_id == records.FACTORY_NODE_ID or self.report_mode == ReportMode.PAUSED:
             return []
         streams = _MSG_STREAMS if self.report_mode == ReportMode.MSG else _EXP_STREAMS
         out: list[can.Message] = []
@@ -728,18 +871,18 @@ class SimCkesc:
         return [self._report(type_id)]
 
     def _report(self, type_id: int) -> can.Message:
-        if type_id == ckesc.TYPE_CAN_TEST:
+        if type_id == records.TYPE_CAN_TEST:
             count, self.can_test_count = self.can_test_count, (self.can_test_count + 1) & 0xFFFFFFFF
-            record: CkescMessage = CanTestReport(count)
+            record: records.CkescMessage = records.CanTestReport(count)
         else:
             record = self._telemetry(type_id)
         return self._broadcast(record, self._tids.next(type_id))
 
-    def _broadcast(self, record: CkescMessage, transfer_id: int | None) -> can.Message:
+    def _broadcast(self, record: records.CkescMessage, transfer_id: int | None) -> can.Message:
         """An unsolicited frame (report), corrupted under the ``corrupt`` fault."""
-        msg = ckesc.encode(
-            CkescFrame(
-                priority=ckesc.default_priority(record),
+        msg = codec.encode(
+            codec.CkescFrame(
+                priority=codec.default_priority(record),
                 source_node=self.node_id,
                 destination_node=None,
                 transfer_id=transfer_id,
@@ -750,27 +893,27 @@ class SimCkesc:
 
     # -- telemetry values -------------------------------------------------------------------
 
-    def _status(self) -> Msg1Status:
-        status = Msg1Status(0)
+    def _status(self) -> records.Msg1Status:
+        status = records.Msg1Status(0)
         if self.reversed:
-            status |= Msg1Status.DIRECTION_CCW
+            status |= records.Msg1Status.DIRECTION_CCW
         if self._using_pwm:
-            status |= Msg1Status.THROTTLE_SOURCE_PWM
+            status |= records.Msg1Status.THROTTLE_SOURCE_PWM
         if self._comms_fault:
-            status |= Msg1Status.COMMS_FAULT
+            status |= records.Msg1Status.COMMS_FAULT
         cells = self._cells or 1
         if self._supply_v < UNDER_VOLTAGE_PER_CELL_V * cells:
-            status |= Msg1Status.UNDER_VOLTAGE
+            status |= records.Msg1Status.UNDER_VOLTAGE
         if self._supply_v > OVER_VOLTAGE_PER_CELL_V * ESC_INFO.max_cells:
-            status |= Msg1Status.OVER_VOLTAGE
+            status |= records.Msg1Status.OVER_VOLTAGE
         if self.faults.over_current or self.motor.current_a > ESC_INFO.max_current_a:
-            status |= Msg1Status.OVER_CURRENT
+            status |= records.Msg1Status.OVER_CURRENT
         if self.faults.over_temperature or self.motor.mos_temp_c > OVER_TEMPERATURE_C:
-            status |= Msg1Status.OVER_TEMPERATURE
+            status |= records.Msg1Status.OVER_TEMPERATURE
         if self._speed_rpm():
-            status |= Msg1Status.RUNNING
+            status |= records.Msg1Status.RUNNING
         if self.self_test_fault in _SELF_TEST_BITS:
-            status |= _SELF_TEST_BITS[SelfTestFault(self.self_test_fault)]
+            status |= _SELF_TEST_BITS[records.SelfTestFault(self.self_test_fault)]
         return status
 
     def _speed_rpm(self) -> int:
@@ -792,25 +935,27 @@ class SimCkesc:
             _clamp_u8(ambient + 5.0 + 0.3 * rise),
         )
 
-    def _telemetry(self, type_id: int) -> CkescMessage:
+    def _telemetry(self, type_id: int) -> records.CkescMessage:
         f = self.flash
         mos, capacitor, motor, mcu = self._temperatures()
         voltage = _clamp_centi(self._supply_v)
-        if type_id == ckesc.TYPE_MSG1:
-            return Msg1(self._speed_rpm(), self._applied, self._status())
-        if type_id == ckesc.TYPE_MSG2:
-            return Msg2(voltage, self._current_a(), mos)
-        if type_id == ckesc.TYPE_MSG3:
-            return Msg3(mos, capacitor, motor, mcu)
-        if type_id == ckesc.TYPE_MSG_EXP1:
-            return MsgExp1(self._speed_rpm(), voltage, self._current_a())
+        if type_id == records.TYPE_MSG1:
+            return records.Msg1(self._speed_rpm(), self._applied, self._status())
+        if type_id == records.TYPE_MSG2:
+            return records.Msg2(voltage, self._current_a(), mos)
+        if type_id == records.TYPE_MSG3:
+            return records.Msg3(mos, capacitor, motor, mcu)
+        if type_id == records.TYPE_MSG_EXP1:
+            return records.MsgExp1(self._speed_rpm(), voltage, self._current_a())
         if type_id in _DEBUG_RECORDS:
             return _DEBUG_RECORDS[type_id](bytes(6))
-        if type_id == ckesc.TYPE_MSG_EXP7:
-            return MsgExp7(
+        if type_id == records.TYPE_MSG_EXP7:
+            return records.MsgExp7(
                 motor_direction=2 if self.reversed else 1,
                 led=_led_nibble(self.led_color),
-                throttle_interface=2 if self.throttle_source == ThrottleSource.PWM_AND_CAN else 3,
+                throttle_interface=2
+                if self.throttle_source == records.ThrottleSource.PWM_AND_CAN
+                else 3,
                 active_freewheeling=int(f["active_freewheeling"]),
                 timing=int(f["timing"]),
                 timing_2=int(f["timing_2"]),
@@ -819,24 +964,41 @@ class SimCkesc:
                 startup_acceleration=int(f["startup_acceleration"]),
                 signal_loss_rate=int(f["signal_loss_rate"]),
             )
-        if type_id == ckesc.TYPE_MSG_EXP8:
-            return MsgExp8(
+        if type_id == records.TYPE_MSG_EXP8:
+            return records.MsgExp8(
                 int(f["power_on_count"]) & 0xFFFF,
                 int(f["start_count"]) & 0xFFFF,
                 int(f["stop_count"]) & 0xFFFF,
             )
-        if type_id == ckesc.TYPE_MSG_EXP9:
-            return MsgExp9(self._total_run_time_s(), self.self_test_fault)
-        if type_id == ckesc.TYPE_MSG_EXP10:
-            return MsgExp10(self.run_time_s, self.fault_code_2)
-        if type_id == ckesc.TYPE_MSG_EXP11:
-            return MsgExp11(mos, mcu, capacitor, motor)
+        if type_id == records.TYPE_MSG_EXP9:
+            return records.MsgExp9(self._total_run_time_s(), self.self_test_fault)
+        if type_id == records.TYPE_MSG_EXP10:
+            return records.MsgExp10(self.run_time_s, self.fault_code_2)
+        if type_id == records.TYPE_MSG_EXP11:
+            return records.MsgExp11(mos, mcu, capacitor, motor)
         raise AssertionError(f"no telemetry record for type {type_id}")
 
 
-def _led_nibble(color: LedColor) -> int:
+def _led_nibble(color: records.LedColor) -> int:
     """MSG_EXP7's LED nibble (0 off, 1 red, 2 green, 3 blue): the first of red, green, blue lit."""
     for nibble, single in enumerate(_EXPAND_LED_COLORS[1:], start=1):
         if color & single:
             return nibble
     return 0
+
+
+def simulators(setup: EscSetup[CkescKeys], motor_params: MotorParams | None) -> list[SimEsc]:
+    """A simulated CKESC for each of ``setup.ids``, following the throttle channels of
+    ``setup.channels`` (else ``[escs] ckesc_channels``, else 1..N), each with a motor of its own.
+
+    Raises:
+        ValueError: not one channel per ESC.
+    """
+    n = len(setup.ids)
+    channels = list(setup.channels or setup.keys.ckesc_channels or range(1, n + 1))
+    if len(channels) != n:
+        raise ValueError(f"channels={channels!r}: {len(channels)} channels for {n} ESCs")
+    return [
+        SimCkesc(node_id, channel, motor=Motor(motor_params))
+        for node_id, channel in zip(setup.ids, channels, strict=True)
+    ]

@@ -80,6 +80,17 @@ class DronecanDriver:
         """Values in each RawCommand (the highest ESC index + 1)."""
         return len(self._commands)
 
+    @property
+    def kind(self) -> str:
+        return f"RawCommand x{len(self._commands)}"
+
+    def describe_command(self, fraction: float) -> str:
+        return f"DroneCAN RawCommand {round(fraction * COMMAND_MAX)}"
+
+    def describe_esc(self, index: int) -> str:
+        esc_index = self._slots[index][0]
+        return f"DroneCAN ESC {esc_index + 1} (esc_index {esc_index})"
+
     def _with_status(self, frames: list[can.Message]) -> list[can.Message]:
         if not self._node_status:
             return frames

@@ -42,8 +42,10 @@ from bridge.escs.dronecan.codec import (
     RawCommand,
     Sender,
 )
+from bridge.escs.dronecan.keys import DronecanKeys
 from bridge.escs.dronecan.wire import COMMAND_MAX, HEALTH_ERROR, HEALTH_OK, MODE_OPERATIONAL
-from bridge.sim.base import Faults
+from bridge.escs.family import EscSetup
+from bridge.sim.base import Faults, SimEsc
 from bridge.sim.motor import Motor, MotorParams
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "DronecanSimStats",
     "SimDronecanEsc",
     "make_escs",
+    "simulators",
 ]
 
 COMMAND_TIMEOUT_S: Final = 0.5
@@ -262,3 +265,8 @@ def make_escs(
         SimDronecanEsc(index, motor=Motor(motor_params), reversible=flag, reader=reader)
         for index, flag in zip(indices, flags, strict=True)
     ]
+
+
+def simulators(setup: EscSetup[DronecanKeys], motor_params: MotorParams | None) -> list[SimEsc]:
+    """A simulated DroneCAN ESC for each ESC number of ``setup.ids`` (esc_index = number - 1)."""
+    return list(make_escs([number - 1 for number in setup.ids], motor_params=motor_params))

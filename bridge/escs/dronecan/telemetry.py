@@ -9,15 +9,28 @@ state. An ESC is known by its ESC number, ``esc_index + 1`` (``[escs] ids``).
   1 WARNING, 2 ERROR, 3 CRITICAL), ERROR and CRITICAL as a GENERIC failure; mode and uptime as
   counters. A NodeStatus of an unknown node is no telemetry.
 - RawCommand: each slot's value, "raw_command" (-8192..8191), for the ESC number slot + 1.
+
+:class:`DronecanDecoder` is the family's reader of one stream: its own transfer reassembler
+(:class:`~bridge.escs.dronecan.codec.Decoder`), so each stream's partial transfers are its
+own; a transfer decodes with its last frame, each frame before it to a ``TransferPart``.
 """
 
 from __future__ import annotations
 
-from typing import Final
+from collections.abc import Collection
+from typing import Final, cast
 
-from bridge.escs.dronecan.codec import DronecanFrame, EscStatus, NodeStatus, RawCommand
-from bridge.escs.dronecan.wire import HEALTH_ERROR
-from bridge.escs.family import FAILURE_GENERIC, FAILURE_NONE, CommandSeen, EscTelemetry
+import can
+
+from bridge.escs.dronecan.codec import Decoder, DronecanFrame, EscStatus, NodeStatus, RawCommand
+from bridge.escs.dronecan.wire import HEALTH_ERROR, owns
+from bridge.escs.family import (
+    FAILURE_GENERIC,
+    FAILURE_NONE,
+    CommandSeen,
+    EscFrame,
+    EscTelemetry,
+)
 
 COMMAND_UNIT: Final = "raw_command"
 
@@ -53,3 +66,32 @@ def commands_seen(frame: DronecanFrame) -> list[CommandSeen]:
         CommandSeen(float(value), COMMAND_UNIT, node_id=slot + 1)
         for slot, value in enumerate(frame.message.commands)
     ]
+
+
+class DronecanDecoder:
+    """One stream's DroneCAN reader. ``esc_nodes`` are ESC numbers (esc_index + 1)."""
+
+    def __init__(self) -> None:
+        self._decoder = Decoder()
+        self._nodes: Collection[int] | None = None
+        self._indices: frozenset[int] = frozenset()
+
+    def decode(self, msg: can.Message, esc_nodes: Collection[int] | None = None) -> EscFrame | None:
+        indices = None
+        if esc_nodes is not None:
+            if esc_nodes is not self._nodes:  # the reader passes one set, frame after frame
+                self._nodes, self._indices = esc_nodes, frozenset(n - 1 for n in esc_nodes)
+            indices = self._indices
+        return self._decoder.decode(msg, indices)
+
+    def node_of(self, msg: can.Message) -> int | None:
+        if not msg.is_extended_id or msg.is_error_frame or not owns(msg.arbitration_id):
+            return None
+        index = self._decoder.index_of_node(msg.arbitration_id & 0x7F)
+        return None if index is None else index + 1
+
+    def telemetry(self, frame: EscFrame) -> EscTelemetry | None:
+        return telemetry(cast(DronecanFrame, frame))
+
+    def commands_seen(self, frame: EscFrame) -> list[CommandSeen]:
+        return commands_seen(cast(DronecanFrame, frame))

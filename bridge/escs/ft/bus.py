@@ -8,13 +8,13 @@ from typing import Final
 
 from can.typechecking import CanFilter
 
-from bridge.escs import ft
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids, fewest_blocks
+from bridge.escs.ft import records
 from bridge.escs.ft.driver import ft_command_dlc
 
-TELEMETRY_COMMANDS: Final = frozenset(ft.Telemetry)
-COMMANDS: Final = frozenset(ft.Command)
+TELEMETRY_COMMANDS: Final = frozenset(records.Telemetry)
+COMMANDS: Final = frozenset(records.Command)
 TELEMETRY_FRAMES: Final = 3  # REALTIME_DATA_0, 1 and 2, 8 bytes each
 TELEMETRY_BYTES: Final = 8
 
@@ -33,7 +33,7 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
         ValueRangeError: an ESC ID outside 0..255.
     """
     ids = frozenset(esc_ids)
-    check_ids(ids, range(ft.ESC_ID_MIN, ft.ESC_ID_MAX + 1), "FT ESC")
+    check_ids(ids, range(records.ESC_ID_MIN, records.ESC_ID_MAX + 1), "FT ESC")
     commands = TELEMETRY_COMMANDS | (COMMANDS if read_back_commands else frozenset())
     return [
         {

@@ -43,39 +43,26 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 import can
 
 from bridge.errors import CrcError, FrameError, NotExtendedIdError
-from bridge.escs.ft import (
-    FtCommand,
-    FtFrame,
-    Gear,
-    RealtimeData0,
-    RealtimeData1,
-    RealtimeData2,
-    SetCurrent,
-    SetCurrentBrake,
-    SetCurrentBrakePercent,
-    SetCurrentPercent,
-    SetDuty,
-    SetErpm,
-    SetIdCurrent,
-    SetPosition,
-    decode,
-    encode,
-)
-from bridge.sim.base import Faults
-from bridge.sim.motor import Motor
+from bridge.escs.family import EscSetup
+from bridge.escs.ft import codec, records
+from bridge.escs.ft.keys import FtKeys
+from bridge.sim.base import Faults, SimEsc
+from bridge.sim.motor import Motor, MotorParams
 
 __all__ = [
     "COMMAND_TIMEOUT_S",
+    "DEMO_SETTINGS",
     "OVER_CURRENT_A",
     "OVER_TEMPERATURE_C",
     "TELEMETRY_PERIOD_S",
     "FtSimStats",
     "SimFt",
+    "simulators",
 ]
 
 log = logging.getLogger(__name__)
@@ -88,6 +75,15 @@ OVER_TEMPERATURE_C: Final = 300.0
 """MOSFET temperature reported under the over_temperature fault (fits i16 x 100)."""
 OVER_CURRENT_A: Final = 5000.0
 """Motor and battery current reported under the over_current fault (fits i24 x 1000)."""
+
+DEMO_SETTINGS: Final[dict[str, dict[str, Any]]] = {
+    # 100 commands per ESC per second, and a 1 Mbit/s bus so that eight ESCs' real-time
+    # telemetry (3 frames x 100 Hz each) stays under the bus-load ceiling.
+    "output": {"rate_hz": 100},
+    "can": {"bitrate": 1_000_000},
+    "escs": {"ft_mode": "current"},
+}
+"""What the demo sets for FT ESCs over its own settings."""
 
 # Clock comparisons allow this much float error: poll times built by adding 1 ms steps do not
 # land exactly on 10 ms or 450 ms.
@@ -161,9 +157,9 @@ class SimFt:
                 raise ValueError(f"{name}={value!r}: expected a current > 0 A")
         self.idle_telemetry = idle_telemetry
         self.stats = FtSimStats()
-        self.last_command: FtCommand | None = None
+        self.last_command: records.FtCommand | None = None
         """The last command obeyed (kept after it times out; see :attr:`commanded`)."""
-        self.gear: Gear = Gear.NONE
+        self.gear: records.Gear = records.Gear.NONE
         """Gear byte of the last geared command: held, limits nothing."""
         self.brake_current_a = 0.0
         """Brake current last commanded (A); the motor model brakes at any current."""
@@ -189,7 +185,7 @@ class SimFt:
         if (msg.arbitration_id >> 8) != self.node_id or msg.arbitration_id > 0xFFFF:
             return []
         try:
-            frame = decode(msg)
+            frame = codec.decode(msg)
         except NotExtendedIdError:
             return []
         except CrcError:
@@ -211,34 +207,36 @@ class SimFt:
             self.motor.set_current(0.0)
             log.debug("FT ESC %d: no command for %.0f ms", self.node_id, COMMAND_TIMEOUT_S * 1e3)
 
-    def _obey(self, frame: FtFrame, now_s: float) -> None:
+    def _obey(self, frame: records.FtFrame, now_s: float) -> None:
         message = frame.message
-        if not isinstance(message, RealtimeData0 | RealtimeData1 | RealtimeData2):
+        if not isinstance(
+            message, records.RealtimeData0 | records.RealtimeData1 | records.RealtimeData2
+        ):
             self._expire(now_s)  # a late command: the old one timed out before it came
         motor = self.motor
         match message:
-            case SetCurrent(current_a=current, gear=gear):
+            case records.SetCurrent(current_a=current, gear=gear):
                 motor.set_current(current)
                 self.gear = gear
-            case SetCurrentPercent(fraction=fraction, gear=gear):
+            case records.SetCurrentPercent(fraction=fraction, gear=gear):
                 motor.set_current(fraction * self.full_scale_current_a)
-                self.gear = Gear.NONE if gear is None else gear
-            case SetDuty(duty=duty, gear=gear):
+                self.gear = records.Gear.NONE if gear is None else gear
+            case records.SetDuty(duty=duty, gear=gear):
                 motor.set_duty(duty)
                 self.gear = gear
-            case SetErpm(erpm=erpm, gear=gear):
+            case records.SetErpm(erpm=erpm, gear=gear):
                 motor.set_erpm(erpm)
                 self.gear = gear
-            case SetCurrentBrake(current_a=current):
+            case records.SetCurrentBrake(current_a=current):
                 self.brake_current_a = abs(current)
                 motor.brake()
-            case SetCurrentBrakePercent(fraction=fraction):
+            case records.SetCurrentBrakePercent(fraction=fraction):
                 self.brake_current_a = abs(fraction) * self.full_scale_brake_current_a
                 motor.brake()
-            case SetPosition(gear=gear):
+            case records.SetPosition(gear=gear):
                 motor.brake()
                 self.gear = gear
-            case SetIdCurrent():
+            case records.SetIdCurrent():
                 motor.brake()
             case _:  # telemetry of another ESC with our ID: not a command
                 return
@@ -270,14 +268,19 @@ class SimFt:
         self._next_telemetry_s = due if due > now_s else now_s + TELEMETRY_PERIOD_S
         if self.faults.silent:
             return []
-        frames = [encode(FtFrame(self.node_id, record)) for record in self._telemetry(supply_v)]
+        frames = [
+            codec.encode(records.FtFrame(self.node_id, record))
+            for record in self._telemetry(supply_v)
+        ]
         if self.faults.corrupt:
             for frame in frames:
                 frame.data[-1] ^= 0xFF  # the CRC's low byte: never matches again
         self.stats.telemetry_frames += len(frames)
         return frames
 
-    def _telemetry(self, supply_v: float) -> tuple[RealtimeData0, RealtimeData1, RealtimeData2]:
+    def _telemetry(
+        self, supply_v: float
+    ) -> tuple[records.RealtimeData0, records.RealtimeData1, records.RealtimeData2]:
         motor = self.motor
         motor_current = math.copysign(motor.motor_current_a, motor.rpm or 1.0)
         battery_current = motor.current_a
@@ -287,13 +290,18 @@ class SimFt:
         mos_temp = OVER_TEMPERATURE_C if self.faults.over_temperature else motor.mos_temp_c
         erpm = _clamp(motor.rpm * motor.params.pole_pairs, _I24_MAX)
         return (
-            RealtimeData0(
+            records.RealtimeData0(
                 _clamp(motor_current, _CURRENT_MAX_A), _clamp(battery_current, _CURRENT_MAX_A)
             ),
-            RealtimeData1(round(erpm), _clamp(motor.duty, _DUTY_MAX)),
-            RealtimeData2(
+            records.RealtimeData1(round(erpm), _clamp(motor.duty, _DUTY_MAX)),
+            records.RealtimeData2(
                 _clamp(mos_temp, _TEMP_MAX_C),
                 _clamp(motor.motor_temp_c, _TEMP_MAX_C),
                 _clamp(supply_v, _VOLTAGE_MAX_V),
             ),
         )
+
+
+def simulators(setup: EscSetup[FtKeys], motor_params: MotorParams | None) -> list[SimEsc]:
+    """A simulated FT ESC for each of ``setup.ids``, each with a motor of its own."""
+    return [SimFt(esc_id, motor=Motor(motor_params)) for esc_id in setup.ids]

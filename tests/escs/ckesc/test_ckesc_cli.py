@@ -20,8 +20,7 @@ import pytest
 from conftest import ESC_BRIDGE, Daemon, can_args, free_port
 
 from bridge.cli import main
-from bridge.escs import ckesc
-from bridge.escs.ckesc import LedColor, SelfTestFault, ThrottleSource
+from bridge.escs.ckesc import records
 from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc, default_flash
 from bridge.sim.runner import Simulator
 
@@ -138,7 +137,7 @@ def test_scan_four_escs_as_json_with_every_field(
     """Node 63 answers last (62 ms), node 125 is the factory ID; each ESC is set differently."""
     setups = {
         1: flash(1, 4),
-        2: flash(2, 3, rotation=1, led_color=int(LedColor.RED), led_blink_hz=5),
+        2: flash(2, 3, rotation=1, led_color=int(records.LedColor.RED), led_blink_hz=5),
         63: flash(63, 2, throttle_source=1, msg1_interval_ms=40, msg2_interval_ms=200),
         125: flash(125, 1, msg3_interval_ms=250, led_color=0),
     }
@@ -153,7 +152,7 @@ def test_scan_four_escs_as_json_with_every_field(
         "firmware_month": ESC_INFO.firmware_month,
         "firmware_day": ESC_INFO.firmware_day,
     }
-    colors = {int(LedColor.RED): "red", int(LedColor.GREEN): "green", 0: "off"}
+    colors = {int(records.LedColor.RED): "red", int(records.LedColor.GREEN): "green", 0: "off"}
     expected = [
         {
             "node_id": node,
@@ -183,8 +182,8 @@ def test_scan_of_escs_sharing_a_node_id_shows_them_and_fails(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Two factory-fresh ESCs (one runner each: a runner holds one ESC per node ID)."""
-    bench.start(SimCkesc(ckesc.FACTORY_NODE_ID, 1))
-    bench.start(SimCkesc(ckesc.FACTORY_NODE_ID, 1))
+    bench.start(SimCkesc(records.FACTORY_NODE_ID, 1))
+    bench.start(SimCkesc(records.FACTORY_NODE_ID, 1))
     bench.start(SimCkesc(7, 2))
     code, out, err = esc(capsys, bench, "scan")
     assert code == 1, err
@@ -224,7 +223,7 @@ def test_scan_without_escs_fails_with_advice(
 def test_set_id_gives_the_only_esc_its_node_and_channel(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    fresh = SimCkesc(ckesc.FACTORY_NODE_ID, 1)
+    fresh = SimCkesc(records.FACTORY_NODE_ID, 1)
     bench.start(fresh)
     code, out, err = esc(capsys, bench, "set-id", "--node", "3", "--channel", "7")
     assert code == 0, err
@@ -245,7 +244,7 @@ def test_set_id_with_several_escs_sends_no_set_id(
     assert (code, out) == (1, "")
     assert "2 ESCs answered GET_ESC_ID (nodes 1, 2)" in err and "not sent" in err
     sent = bench.host_frames()
-    assert len(sent) == 1 and sent[0].arbitration_id >> 8 & 0xFFFF == ckesc.TYPE_GET_ESC_ID
+    assert len(sent) == 1 and sent[0].arbitration_id >> 8 & 0xFFFF == records.TYPE_GET_ESC_ID
     assert [e.node_id for e in sim.escs] == [1, 2]
 
 
@@ -263,7 +262,7 @@ def test_set_id_without_answer_explains_the_power_up_window(
 def test_set_id_after_the_power_up_window_is_refused(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    old = SimCkesc(ckesc.FACTORY_NODE_ID, 1, power_on_s=-121.0)
+    old = SimCkesc(records.FACTORY_NODE_ID, 1, power_on_s=-121.0)
     bench.start(old)
     code, out, err = esc(capsys, bench, "set-id", "--node", "3", "--channel", "3")
     assert (code, out) == (1, "")
@@ -271,7 +270,7 @@ def test_set_id_after_the_power_up_window_is_refused(
         "node 125 refused Set ID (210): asked node 3 channel 3, in effect node 125 channel 1"
     ) in err
     assert "within 120 s of its power-up" in err
-    assert old.node_id == ckesc.FACTORY_NODE_ID
+    assert old.node_id == records.FACTORY_NODE_ID
 
 
 def test_baud_is_taken_within_the_window_and_refused_after(
@@ -350,11 +349,11 @@ def test_led_sets_the_colour_saves_it_on_request_and_is_refused_while_paused(
     code, out, err = esc(capsys, bench, "led", "--node", "4", "--color", "red", "--blink", "2")
     assert code == 0, err
     assert out == "node 4: LED red, blinking 2 Hz (until power-off)\n"
-    assert (esc4.led_color, esc4.led_blink_hz) == (LedColor.RED, 2)
-    assert esc4.flash["led_color"] == int(LedColor.GREEN)  # not saved
+    assert (esc4.led_color, esc4.led_blink_hz) == (records.LedColor.RED, 2)
+    assert esc4.flash["led_color"] == int(records.LedColor.GREEN)  # not saved
     result = esc_json(capsys, bench, "led", "--node", "4", "--color", "yellow", "--save")
     assert result == {"node_id": 4, "save": True, "color": "yellow", "blink_hz": 0}
-    assert esc4.flash["led_color"] == int(LedColor.RED | LedColor.GREEN)
+    assert esc4.flash["led_color"] == int(records.LedColor.RED | records.LedColor.GREEN)
     assert esc(capsys, bench, "reports", "pause")[0] == 0
     code, out, err = esc(capsys, bench, "led", "--node", "4", "--color", "blue")
     assert (code, out) == (1, "")
@@ -386,7 +385,7 @@ def test_report_rate_reads_and_writes_and_the_telemetry_follows(
         "node 2: reports now: MSG1 every 20 ms (50 Hz), MSG2 every 100 ms (10 Hz), "
         "MSG3 every 500 ms (2 Hz)\n"
     )
-    assert bench.count(ckesc.TYPE_MSG1, 0.4, node=2) >= 15  # 50 Hz: 20 in 0.4 s
+    assert bench.count(records.TYPE_MSG1, 0.4, node=2) >= 15  # 50 Hz: 20 in 0.4 s
     result = esc_json(capsys, bench, "report-rate", "--node", "2", "--msg1-hz", "10")
     assert result == {
         "node_id": 2,
@@ -396,7 +395,7 @@ def test_report_rate_reads_and_writes_and_the_telemetry_follows(
         "msg3_interval_ms": 500,
     }
     assert esc2.flash["msg1_interval_ms"] == 100
-    assert 2 <= bench.count(ckesc.TYPE_MSG1, 0.4, node=2) <= 6  # 10 Hz: 4 in 0.4 s
+    assert 2 <= bench.count(records.TYPE_MSG1, 0.4, node=2) <= 6  # 10 Hz: 4 in 0.4 s
     # 30 Hz is 33.3 ms: the nearest interval the ESC can take is 34 ms.
     code, out, err = esc(capsys, bench, "report-rate", "--node", "2", "--msg2-hz", "30")
     assert code == 0, err
@@ -411,7 +410,7 @@ def test_throttle_source_set_and_query(bench: Bench, capsys: pytest.CaptureFixtu
     )
     code, out, err = esc(capsys, bench, "throttle-source", "--node", "8", "pwm-can")
     assert (code, out) == (0, "node 8: throttle source set to pwm-can\n"), err
-    assert esc8.flash["throttle_source"] == int(ThrottleSource.PWM_AND_CAN)
+    assert esc8.flash["throttle_source"] == int(records.ThrottleSource.PWM_AND_CAN)
     assert esc_json(capsys, bench, "throttle-source", "--node", "8") == {
         "node_id": 8,
         "throttle_source": "pwm-can",
@@ -422,7 +421,7 @@ def test_self_test_passes_and_fails_with_the_fault_code(
     bench: Bench, capsys: pytest.CaptureFixture[str]
 ) -> None:
     good, bad = SimCkesc(1, 1), SimCkesc(2, 2)
-    bad.self_test_fault = SelfTestFault.PHASE_B_LOW
+    bad.self_test_fault = records.SelfTestFault.PHASE_B_LOW
     bench.start(good, bad)
     assert esc(capsys, bench, "self-test", "--node", "1")[:2] == (
         0,
@@ -438,8 +437,8 @@ def test_self_test_passes_and_fails_with_the_fault_code(
 # Every Expand Set command by name: (name, part, flash key, value the flash then holds).
 EXPANDS = [
     ("direction", "reversed", "rotation", 1),
-    ("led", "blue", "led_color", int(LedColor.BLUE)),
-    ("throttle-interface", "pwm-tcan", "throttle_source", int(ThrottleSource.PWM_AND_CAN)),
+    ("led", "blue", "led_color", int(records.LedColor.BLUE)),
+    ("throttle-interface", "pwm-tcan", "throttle_source", int(records.ThrottleSource.PWM_AND_CAN)),
     ("active-freewheeling", "off", "active_freewheeling", 0),
     ("timing", "3", "timing", 3),
     ("timing-2", "4", "timing_2", 4),
@@ -525,21 +524,21 @@ def test_reports_pause_resume_and_resume_exp_switch_the_telemetry(
     bench.start(SimCkesc(1, 1), SimCkesc(2, 2))
     code, out, err = esc(capsys, bench, "reports", "pause")
     assert (code, out) == (0, "reports pause: acknowledged by node(s) 1, 2\n"), err
-    assert bench.count(ckesc.TYPE_MSG1, 0.2) == 0
+    assert bench.count(records.TYPE_MSG1, 0.2) == 0
     code, out, err = esc(capsys, bench, "reports", "resume", "--node", "2")
     assert code == 0, err
-    assert bench.count(ckesc.TYPE_MSG1, 0.2) >= 10  # two ESCs at 50 Hz
+    assert bench.count(records.TYPE_MSG1, 0.2) >= 10  # two ESCs at 50 Hz
     assert esc_json(capsys, bench, "reports", "resume-exp") == {
         "action": "resume-exp",
         "acked_by": [1, 2],
     }
-    assert bench.count(ckesc.TYPE_MSG_EXP1, 0.2) >= 10
-    assert bench.count(ckesc.TYPE_MSG1, 0.1) == 0
+    assert bench.count(records.TYPE_MSG_EXP1, 0.2) >= 10
+    assert bench.count(records.TYPE_MSG1, 0.1) == 0
     code, out, err = esc(capsys, bench, "reports", "resume", "--node", "7")
     assert (code, out) == (1, "")
     assert "node 7 did not acknowledge MSGControl RESUME_MSG" in err
     assert "acknowledged by node(s) 1, 2" in err
-    assert bench.count(ckesc.TYPE_MSG1, 0.2) >= 10  # the others did act on it
+    assert bench.count(records.TYPE_MSG1, 0.2) >= 10  # the others did act on it
 
 
 def test_can_test_counts_every_frame_and_ends_the_mode(
@@ -556,7 +555,7 @@ def test_can_test_counts_every_frame_and_ends_the_mode(
     for row in rows:
         assert int(row[1]) >= 100 and row[1] == row[2] and row[3] == "0"  # 2 ms: ~200 in 0.4 s
     assert wait_until(lambda: not any(e.can_test_mode for e in escs))
-    assert bench.count(ckesc.TYPE_MSG1, 0.2) >= 10  # reports are back
+    assert bench.count(records.TYPE_MSG1, 0.2) >= 10  # reports are back
     result = esc_json(capsys, bench, "can-test", "--node", "40", "--seconds", "0.2")
     (row,) = result["escs"]
     assert row["node_id"] == 40 and row["lost"] == 0 and result["lost"] == 0

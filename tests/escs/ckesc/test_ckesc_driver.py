@@ -5,18 +5,18 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec, records
 from bridge.escs.ckesc.driver import CkescDriver
 
 ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True)
 
 
-def _throttles(frames: list[ckesc.CkescFrame]) -> dict[int, int]:
+def _throttles(frames: list[codec.CkescFrame]) -> dict[int, int]:
     """Channel -> throttle from decoded 12b frames."""
     out = {}
     for frame in frames:
         message = frame.message
-        assert isinstance(message, ckesc.RawCommand12b)
+        assert isinstance(message, records.RawCommand12b)
         for i, value in enumerate(message.throttles):
             out[4 * message.group - 3 + i] = value
     return out
@@ -25,18 +25,18 @@ def _throttles(frames: list[ckesc.CkescFrame]) -> dict[int, int]:
 def test_ckesc_12b_groups_and_scaling() -> None:
     driver = CkescDriver("12b", [1, 2, 3, 4, 5, 6, 7, 8])
     msgs = driver.tick_frames(0, [0.0, 0.25, 0.5, 1.0, 0.0005, 0.9995, 0.3, 0.7])
-    frames = [ckesc.decode(m) for m in msgs]
+    frames = [codec.decode(m) for m in msgs]
     assert all(f is not None for f in frames)
     throttles = _throttles([f for f in frames if f is not None])
     assert throttles == {1: 0, 2: 500, 3: 1000, 4: 2000, 5: 1, 6: 1999, 7: 600, 8: 1400}
     # Each frame of the type takes the next transfer ID.
     assert [f.transfer_id for f in frames if f is not None] == [0, 1]
-    assert [f.transfer_id for f in map(ckesc.decode, driver.safe_frames(1)) if f] == [2, 3]
+    assert [f.transfer_id for f in map(codec.decode, driver.safe_frames(1)) if f] == [2, 3]
 
 
 def test_ckesc_channel_map_leaves_unused_channels_at_zero() -> None:
     driver = CkescDriver("12b", [3, 9])
-    frames = [ckesc.decode(m) for m in driver.tick_frames(0, [1.0, 0.5])]
+    frames = [codec.decode(m) for m in driver.tick_frames(0, [1.0, 0.5])]
     throttles = _throttles([f for f in frames if f is not None])
     assert throttles[3] == 2000 and throttles[9] == 1000
     assert {k: v for k, v in throttles.items() if k not in (3, 9)} == dict.fromkeys(
@@ -46,8 +46,8 @@ def test_ckesc_channel_map_leaves_unused_channels_at_zero() -> None:
 
 def test_ckesc_10b_and_14b() -> None:
     msg = CkescDriver("10b", [1, 2, 3, 4, 5, 6]).tick_frames(0, [0.1, 0.2, 0.3, 0.4, 0.5, 1.0])[0]
-    frame = ckesc.decode(msg)
-    assert frame is not None and isinstance(frame.message, ckesc.RawCommand10b)
+    frame = codec.decode(msg)
+    assert frame is not None and isinstance(frame.message, records.RawCommand10b)
     assert frame.message.throttles == (100, 200, 300, 400, 500, 1000)
     msg = CkescDriver("14b", [1, 2, 3, 4]).tick_frames(0, [0.5, 0.5, 0.5, 0.5])[0]
     assert msg.arbitration_id == 0x004E8400
@@ -56,6 +56,6 @@ def test_ckesc_10b_and_14b() -> None:
 
 @given(st.lists(ANY_FLOAT, min_size=8, max_size=8))
 def test_ckesc_never_out_of_range(fractions: list[float]) -> None:
-    for frame in map(ckesc.decode, CkescDriver("12b", range(1, 9)).tick_frames(0, fractions)):
-        assert frame is not None and isinstance(frame.message, ckesc.RawCommand12b)
-        assert all(0 <= t <= ckesc.THROTTLE_MAX for t in frame.message.throttles)
+    for frame in map(codec.decode, CkescDriver("12b", range(1, 9)).tick_frames(0, fractions)):
+        assert frame is not None and isinstance(frame.message, records.RawCommand12b)
+        assert all(0 <= t <= records.THROTTLE_MAX for t in frame.message.throttles)

@@ -12,9 +12,10 @@ import can
 import pytest
 
 from bridge.errors import LinkError, NoAnswerError, RefusedError, SetupError, WrongNodeError
-from bridge.escs import ckesc, uavcan_v0
-from bridge.escs.ckesc import CkescFrame, Rotation, ThrottleSource
-from bridge.escs.ckesc.setup import CanTestResult, CkescClient, ScannedEsc, scan_warnings
+from bridge.escs import uavcan_v0
+from bridge.escs.ckesc import codec, records
+from bridge.escs.ckesc.results import CanTestResult, ScannedEsc, scan_warnings
+from bridge.escs.ckesc.setup import CkescClient
 from bridge.escs.ckesc.sim import ESC_INFO, SimCkesc
 from bridge.sim.runner import Simulator
 
@@ -40,7 +41,7 @@ def simulate(channel: str, *escs: SimCkesc) -> Simulator:
 class Peer:
     """A raw bus peer that answers every service request with ``reply(request frame)``."""
 
-    def __init__(self, channel: str, reply: Callable[[CkescFrame], can.Message]) -> None:
+    def __init__(self, channel: str, reply: Callable[[codec.CkescFrame], can.Message]) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel)
         self._reply = reply
         self._stop = threading.Event()
@@ -52,7 +53,7 @@ class Peer:
             msg = self.bus.recv(0.01)
             if msg is None or not msg.arbitration_id & 0x8000:
                 continue  # not a service request
-            frame = ckesc.decode(msg)
+            frame = codec.decode(msg)
             if frame is not None:
                 self.bus.send(self._reply(frame))
 
@@ -62,12 +63,14 @@ class Peer:
         self.bus.shutdown()
 
 
-def info_from(node: int) -> Callable[[CkescFrame], can.Message]:
+def info_from(node: int) -> Callable[[codec.CkescFrame], can.Message]:
     """An ESC Information response from ``node`` to any request, with its transfer ID."""
 
-    def reply(request: CkescFrame) -> can.Message:
-        response = CkescFrame(uavcan_v0.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO)
-        return ckesc.encode(response)
+    def reply(request: codec.CkescFrame) -> can.Message:
+        response = codec.CkescFrame(
+            uavcan_v0.PRIORITY_MEDIUM, node, 0, request.transfer_id, ESC_INFO
+        )
+        return codec.encode(response)
 
     return reply
 
@@ -92,10 +95,10 @@ def test_an_answer_from_another_node_is_a_wrong_node_error(
 def test_an_answer_with_another_transfer_id_is_not_the_answer(
     channel: str, client: CkescClient
 ) -> None:
-    def stale(request: CkescFrame) -> can.Message:
+    def stale(request: codec.CkescFrame) -> can.Message:
         assert request.transfer_id is not None
         earlier = (request.transfer_id - 1) % 32
-        return ckesc.encode(CkescFrame(uavcan_v0.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
+        return codec.encode(codec.CkescFrame(uavcan_v0.PRIORITY_MEDIUM, 3, 0, earlier, ESC_INFO))
 
     peer = Peer(channel, stale)
     try:
@@ -121,7 +124,7 @@ def test_the_addressed_node_wins_over_another_that_answers_too(
 def test_a_malformed_answer_is_named_when_no_good_one_follows(
     channel: str, client: CkescClient
 ) -> None:
-    def short(request: CkescFrame) -> can.Message:
+    def short(request: codec.CkescFrame) -> can.Message:
         good = info_from(3)(request)
         return can.Message(arbitration_id=good.arbitration_id, data=good.data[:5])
 
@@ -139,8 +142,8 @@ def test_a_malformed_answer_is_named_when_no_good_one_follows(
 
 def test_shared_node_ids_are_found_and_block_set_id(channel: str, client: CkescClient) -> None:
     """Two factory-fresh ESCs: both answer as node 125 (two runners: one node ID each)."""
-    first = simulate(channel, SimCkesc(ckesc.FACTORY_NODE_ID, 1))
-    second = simulate(channel, SimCkesc(ckesc.FACTORY_NODE_ID, 1))
+    first = simulate(channel, SimCkesc(records.FACTORY_NODE_ID, 1))
+    second = simulate(channel, SimCkesc(records.FACTORY_NODE_ID, 1))
     try:
         escs = client.scan()
         assert [(e.node_id, e.info) for e in escs] == [(125, None), (125, None)]
@@ -167,7 +170,7 @@ def spin(channel: str, stop: threading.Event) -> None:
     bus = can.Bus(interface="virtual", channel=channel)
     tids = uavcan_v0.TransferIds()
     while not stop.wait(0.02):
-        bus.send(ckesc.encode_raw_12b(1, [600], tids.next(ckesc.TYPE_RAW_COMMAND_12B)))
+        bus.send(codec.encode_raw_12b(1, [600], tids.next(records.TYPE_RAW_COMMAND_12B)))
     bus.shutdown()
 
 
@@ -185,15 +188,15 @@ def test_settings_that_need_a_stopped_motor_are_refused_while_it_turns(
             time.sleep(0.01)
         assert esc.motor.rpm >= 100
         with pytest.raises(RefusedError) as caught:
-            client.rotation(1, Rotation.REVERSED)
+            client.rotation(1, records.Rotation.REVERSED)
         assert str(caught.value) == (
             "node 1 refused Set Rotation (213): asked reversed, in effect normal; an ESC takes "
             "Set Rotation only with the motor stopped and its reports on (MSGControl resume)"
         )
         with pytest.raises(RefusedError, match=r"asked pwm-can, in effect can; .*zero throttle"):
-            client.throttle_source(1, ThrottleSource.PWM_AND_CAN)
+            client.throttle_source(1, records.ThrottleSource.PWM_AND_CAN)
         with pytest.raises(RefusedError) as caught:
-            client.expand(1, ckesc.ExpandSetCommand.DIRECTION, 2)
+            client.expand(1, records.ExpandSetCommand.DIRECTION, 2)
         assert str(caught.value).startswith(
             "node 1 refused Expand Set (222): asked direction 2 (direction reversed yes), in "
             "effect direction reversed no (Get Major Configuration); an ESC takes Expand Set "
@@ -203,7 +206,7 @@ def test_settings_that_need_a_stopped_motor_are_refused_while_it_turns(
         stop.set()
         spinner.join(1.0)
         sim.close()
-    assert not esc.reversed and esc.throttle_source == ThrottleSource.CAN
+    assert not esc.reversed and esc.throttle_source == records.ThrottleSource.CAN
 
 
 def test_report_intervals_written_in_part_keep_the_others(

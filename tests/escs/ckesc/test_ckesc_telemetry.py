@@ -11,7 +11,9 @@ import can
 import pytest
 
 from bridge.errors import LinkError
-from bridge.escs import ckesc, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec, records
+from bridge.escs.ckesc.keys import CkescKeys
 from bridge.escs.ckesc.setup import learn_node_ids
 from bridge.escs.ckesc.telemetry import NO_COMMAND, STATUS_FAILURES
 from bridge.escs.family import (
@@ -19,37 +21,38 @@ from bridge.escs.family import (
     FAILURE_OVER_CURRENT,
     FAILURE_OVER_TEMPERATURE,
     FAILURE_OVER_VOLTAGE,
+    EscSetup,
 )
 from bridge.telemetry.state import EscTable, TelemetryLimits
 
-S = ckesc.Msg1Status
+S = records.Msg1Status
 MS = 1_000_000
 T0 = 10_000 * MS  # an arbitrary monotonic start
 
 
-def ck(node: int, message: ckesc.CkescMessage, transfer_id: int = 0) -> can.Message:
-    frame = ckesc.CkescFrame(ckesc.default_priority(message), node, None, transfer_id, message)
-    return ckesc.encode(frame)
+def ck(node: int, message: records.CkescMessage, transfer_id: int = 0) -> can.Message:
+    frame = codec.CkescFrame(codec.default_priority(message), node, None, transfer_id, message)
+    return codec.encode(frame)
 
 
 def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
     """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.family_of(msg.arbitration_id)
-    assert family is not None
-    frame = family.decode(msg)
+    family = registry.families_of(msg.arbitration_id)[0]
+    decoder = family.decoder()  # one frame is one message for the families fed here
+    frame = decoder.decode(msg)
     assert frame is not None
-    telemetry = family.telemetry(frame)
+    telemetry = decoder.telemetry(frame)
     if telemetry is None:
-        table.note_commands(family.commands_seen(frame))
+        table.note_commands(decoder.commands_seen(frame))
         return False
     return table.ingest(telemetry, now_ns)
 
 
 def test_ckesc_messages_fill_every_field() -> None:
     table = EscTable([11, 12, 13, 14])
-    assert feed(table, ck(12, ckesc.Msg1(5230, 1500, S.RUNNING)), T0)
-    assert feed(table, ck(12, ckesc.Msg2(24.51, 12.34, 61)), T0 + MS)
-    assert feed(table, ck(12, ckesc.Msg3(62, 45, 70, 55)), T0 + 2 * MS)
+    assert feed(table, ck(12, records.Msg1(5230, 1500, S.RUNNING)), T0)
+    assert feed(table, ck(12, records.Msg2(24.51, 12.34, 61)), T0 + MS)
+    assert feed(table, ck(12, records.Msg3(62, 45, 70, 55)), T0 + 2 * MS)
     esc = table.snapshot(T0 + 3 * MS)[1]
     assert (esc.motor, esc.node_id, esc.online) == (2, 12, True)
     assert esc.rpm == 5230
@@ -73,11 +76,11 @@ def test_ckesc_messages_fill_every_field() -> None:
 
 def test_ckesc_exp_messages() -> None:
     table = EscTable([1])
-    feed(table, ck(1, ckesc.MsgExp1(4100, 47.9, 3.25)), T0)
-    feed(table, ck(1, ckesc.MsgExp11(50, 40, 35, 60)), T0)
-    feed(table, ck(1, ckesc.MsgExp8(17, 230, 228)), T0)
-    feed(table, ck(1, ckesc.MsgExp9(3600, ckesc.SelfTestFault.NONE)), T0)
-    feed(table, ck(1, ckesc.MsgExp10(95, 0)), T0)
+    feed(table, ck(1, records.MsgExp1(4100, 47.9, 3.25)), T0)
+    feed(table, ck(1, records.MsgExp11(50, 40, 35, 60)), T0)
+    feed(table, ck(1, records.MsgExp8(17, 230, 228)), T0)
+    feed(table, ck(1, records.MsgExp9(3600, records.SelfTestFault.NONE)), T0)
+    feed(table, ck(1, records.MsgExp10(95, 0)), T0)
     esc = table.snapshot(T0)[0]
     assert (esc.rpm, esc.current_a) == (4100, 3.25)
     assert esc.voltage_v == pytest.approx(47.9)
@@ -97,7 +100,7 @@ def test_ckesc_exp_messages() -> None:
         "fault_code_2": 0,
     }
     assert esc.failure_flags == 0
-    feed(table, ck(1, ckesc.MsgExp9(3600, ckesc.SelfTestFault.PHASE_B_LOW)), T0)
+    feed(table, ck(1, records.MsgExp9(3600, records.SelfTestFault.PHASE_B_LOW)), T0)
     assert table.snapshot(T0)[0].failure_flags == FAILURE_GENERIC
 
 
@@ -117,15 +120,15 @@ def test_ckesc_exp_messages() -> None:
 )
 def test_ckesc_status_bits_become_failure_flags(status: S, flags: int) -> None:
     table = EscTable([3], limits=TelemetryLimits(max_temp_c=None))
-    feed(table, ck(3, ckesc.Msg1(0, 0, status)), T0)
+    feed(table, ck(3, records.Msg1(0, 0, status)), T0)
     assert table.snapshot(T0)[0].failure_flags == flags
 
 
 def test_no_command_is_a_failure_only_to_a_commanding_owner() -> None:
     # Every idle CKESC raises its comms fault 200 ms after the last command: the bridge, which
     # sends commands, sees a failure; the monitor, listening, an idle ESC.
-    idle = ck(3, ckesc.Msg1(0, 0, S.COMMS_FAULT | S.UNDER_VOLTAGE))
-    quiet = ck(3, ckesc.Msg1(0, 0, S.COMMS_FAULT))
+    idle = ck(3, records.Msg1(0, 0, S.COMMS_FAULT | S.UNDER_VOLTAGE))
+    quiet = ck(3, records.Msg1(0, 0, S.COMMS_FAULT))
     for commanded, flags in ((True, FAILURE_GENERIC), (False, 0)):
         table = EscTable([3], commanded=commanded)
         feed(table, quiet, T0)
@@ -133,7 +136,7 @@ def test_no_command_is_a_failure_only_to_a_commanding_owner() -> None:
     listening = EscTable([3], commanded=False)
     feed(listening, idle, T0)  # under-voltage is a failure to anyone
     assert listening.snapshot(T0)[0].failure_flags == FAILURE_GENERIC
-    feed(listening, ck(3, ckesc.Msg1(0, 0, S(0))), T0 + 1)
+    feed(listening, ck(3, records.Msg1(0, 0, S(0))), T0 + 1)
     assert listening.snapshot(T0 + 1)[0].failure_flags == 0
 
 
@@ -148,9 +151,9 @@ def test_every_mapped_status_bit_is_a_fault_bit() -> None:
 
 
 def test_node_of_malformed_frames() -> None:
-    family = registry.family("ckesc")
-    assert family.node_of(can.Message(arbitration_id=0x1F4E5203, data=b"")) == 3
-    assert family.node_of(can.Message(arbitration_id=0x1F4E5200, data=b"")) is None
+    decoder = registry.family("ckesc").decoder()
+    assert decoder.node_of(can.Message(arbitration_id=0x1F4E5203, data=b"")) == 3
+    assert decoder.node_of(can.Message(arbitration_id=0x1F4E5200, data=b"")) is None
 
 
 def _virtual_pair(channel: str) -> tuple[can.BusABC, can.BusABC]:
@@ -166,11 +169,11 @@ def _answering_escs(bus: can.BusABC, answers: list[tuple[int, int]], stop: threa
         msg = bus.recv(0.05)
         if msg is None:
             continue
-        frame = ckesc.decode(msg)
-        if frame is not None and isinstance(frame.message, ckesc.GetEscIdRequest):
+        frame = codec.decode(msg)
+        if frame is not None and isinstance(frame.message, records.GetEscIdRequest):
             for node, channel in sorted(answers, key=lambda a: a[0] % 32):
                 time.sleep(0.002)
-                bus.send(ck(node, ckesc.GetEscIdAnswer(node, channel)))
+                bus.send(ck(node, records.GetEscIdAnswer(node, channel)))
 
 
 @pytest.mark.parametrize(
@@ -190,7 +193,8 @@ def test_learning_ckesc_ids_by_channel(
     thread.start()
     try:
         # {motor index: node}: channel c is motor c - 1's here.
-        assert learn_node_ids(host, [1, 2, 3, 4]) == {c - 1: n for c, n in expected.items()}
+        setup = EscSetup((11, 12, 13, 14), CkescKeys(), channels=(1, 2, 3, 4))
+        assert learn_node_ids(host, setup) == {c - 1: n for c, n in expected.items()}
     finally:
         stop.set()
         thread.join()
@@ -207,7 +211,7 @@ def test_two_escs_on_one_channel_are_refused() -> None:
     thread.start()
     try:
         with pytest.raises(LinkError, match="nodes 3 and 4 both follow throttle channel 2"):
-            learn_node_ids(host, [1, 2])
+            learn_node_ids(host, EscSetup((1, 2), CkescKeys(), channels=(1, 2)))
     finally:
         stop.set()
         thread.join()

@@ -122,9 +122,8 @@ def test_the_output_loop_never_imports_dronecan() -> None:
         "import sys\n"
         "import bridge.output.output_loop\n"
         "from bridge.config import build_config, with_esc_count\n"
-        "from bridge.escs.drivers import make_driver\n"
         "config = with_esc_count(build_config({'output': {'protocol': 'dronecan'}}, 'x'), 8)\n"
-        "make_driver(config).tick_frames(0, [0.5] * 8)\n"
+        "config.family.driver(config.esc_setup).tick_frames(0, [0.5] * 8)\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'dronecan'))\n"
     )
     result = subprocess.run(

@@ -13,7 +13,9 @@ from bridge.errors import ConfigError, CrcError
 from bridge.escs import registry
 from bridge.escs.dronecan import codec, wire
 from bridge.escs.dronecan.codec import DronecanFrame, EscStatus, RawCommand, TransferPart
-from bridge.escs.dronecan.sim import SimDronecanEsc
+from bridge.escs.dronecan.keys import DronecanKeys
+from bridge.escs.dronecan.sim import SimDronecanEsc, simulators
+from bridge.escs.family import EscSetup
 
 FAMILY = registry.family("dronecan")
 
@@ -27,17 +29,18 @@ def test_id_space() -> None:
     assert not FAMILY.owns(0x10040A94)  # the service bit
 
 
-def test_a_decoder_per_thread() -> None:
-    """Two threads reading the same frames (two readers of one bus) each put every transfer
-    together: their reassembly does not mix."""
+def test_a_decoder_per_stream() -> None:
+    """Two threads reading the same frames (two readers of one bus), each with its decoder,
+    each put every transfer together: their reassembly does not mix."""
     frames = codec.encode(EscStatus(2, 0, 16.0, 1.0, 300.0, 100, 5), 22, 0)
     results: dict[str, list[object]] = {"a": [], "b": []}
     step = [threading.Barrier(2) for _ in frames]
 
     def read(name: str) -> None:
+        decoder = FAMILY.decoder()
         for msg, barrier in zip(frames, step, strict=True):
             barrier.wait()
-            results[name].append(FAMILY.decode(msg))
+            results[name].append(decoder.decode(msg))
 
     threads = [threading.Thread(target=read, args=(name,)) for name in results]
     for thread in threads:
@@ -54,19 +57,20 @@ def test_a_decoder_per_thread() -> None:
 
 def test_esc_nodes_and_node_of() -> None:
     frames = codec.encode(EscStatus(2, 0, 16.0, 1.0, 300.0, 100, 5), 23, 1)
-    done = [FAMILY.decode(msg, {1, 2, 3}) for msg in frames][-1]  # ESC 3 is index 2: ours
+    decoder = FAMILY.decoder()
+    done = [decoder.decode(msg, {1, 2, 3}) for msg in frames][-1]  # ESC 3 is index 2: ours
     assert isinstance(done, DronecanFrame) and done.esc_index == 2
-    telemetry = FAMILY.telemetry(done)
+    telemetry = decoder.telemetry(done)
     assert telemetry is not None and telemetry.node_id == 3
-    assert FAMILY.node_of(frames[0]) == 3  # node 23 said it is ESC 3
+    assert decoder.node_of(frames[0]) == 3  # node 23 said it is ESC 3
     bad = codec.encode(EscStatus(2, 0, 16.0, 1.0, 300.0, 100, 5), 23, 2)
     bad[0].data[0] ^= 1
     with pytest.raises(CrcError):
         for msg in bad:
-            FAMILY.decode(msg)
-    assert FAMILY.node_of(bad[-1]) == 3
-    assert FAMILY.node_of(codec.encode(EscStatus(0, 0, 1.0, 1.0, 1.0, 0, 0), 99, 0)[0]) is None
-    others = [FAMILY.decode(msg, {1, 2}) for msg in frames]
+            decoder.decode(msg)
+    assert decoder.node_of(bad[-1]) == 3
+    assert decoder.node_of(codec.encode(EscStatus(0, 0, 1.0, 1.0, 1.0, 0, 0), 99, 0)[0]) is None
+    others = [decoder.decode(msg, {1, 2}) for msg in frames]
     assert others[-1] is None  # ESC 3 is not ours now
 
 
@@ -82,30 +86,29 @@ def test_esc_numbers_are_slots_plus_one() -> None:
         ),
         2,
     )
-    driver = FAMILY.driver(config)
+    driver = FAMILY.driver(config.esc_setup)
     command, node_status = driver.tick_frames(0, [0.5, -0.5])  # one frame, and our NodeStatus
     assert FAMILY.owns(node_status.arbitration_id)
-    frame = FAMILY.decode(command)
+    decoder = FAMILY.decoder()
+    frame = decoder.decode(command)
     assert isinstance(frame, DronecanFrame) and frame.source_node == 42
     assert frame.message == RawCommand((0, 4096, 0, -4096))  # slots 1 and 3; ESC 4 reverses
-    assert [(c.node_id, c.value) for c in FAMILY.commands_seen(frame)] == [
+    assert [(c.node_id, c.value) for c in decoder.commands_seen(frame)] == [
         (1, 0.0),
         (2, 4096.0),
         (3, 0.0),
         (4, -4096.0),
     ]
-    assert FAMILY.describe_esc(config, 1) == "DroneCAN ESC 4 (esc_index 3)"
-    assert FAMILY.describe_command(config, 0.5) == "DroneCAN RawCommand 4096"
-    assert FAMILY.command_kind(config) == "RawCommand x4"
+    assert driver.describe_esc(1) == "DroneCAN ESC 4 (esc_index 3)"
+    assert driver.describe_command(0.5) == "DroneCAN RawCommand 4096"
+    assert driver.kind == "RawCommand x4"
 
 
 def test_simulators() -> None:
-    escs = FAMILY.simulators([1, 3], None, None)
+    escs = simulators(EscSetup((1, 3), DronecanKeys()), None)
     assert [e.node_id for e in escs] == [1, 3]
     assert all(isinstance(e, SimDronecanEsc) for e in escs)
     assert [e.esc_index for e in escs if isinstance(e, SimDronecanEsc)] == [0, 2]
-    with pytest.raises(ValueError, match="channel"):
-        FAMILY.simulators([1], [1], None)
 
 
 def test_config_checks() -> None:

@@ -5,36 +5,37 @@ from __future__ import annotations
 
 import can
 
-from bridge.escs import ft, registry
+from bridge.escs import registry
+from bridge.escs.ft import codec, records
 from bridge.telemetry.state import EscTable
 
 MS = 1_000_000
 T0 = 10_000 * MS  # an arbitrary monotonic start
 
 
-def ftm(esc_id: int, message: ft.FtMessage) -> can.Message:
-    return ft.encode(ft.FtFrame(esc_id, message))
+def ftm(esc_id: int, message: records.FtMessage) -> can.Message:
+    return codec.encode(records.FtFrame(esc_id, message))
 
 
 def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
     """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.family_of(msg.arbitration_id)
-    assert family is not None
-    frame = family.decode(msg)
+    family = registry.families_of(msg.arbitration_id)[0]
+    decoder = family.decoder()  # one frame is one message for the families fed here
+    frame = decoder.decode(msg)
     assert frame is not None
-    telemetry = family.telemetry(frame)
+    telemetry = decoder.telemetry(frame)
     if telemetry is None:
-        table.note_commands(family.commands_seen(frame))
+        table.note_commands(decoder.commands_seen(frame))
         return False
     return table.ingest(telemetry, now_ns)
 
 
 def test_ft_frames_signed_rpm_by_pole_pairs() -> None:
     table = EscTable([1, 2], pole_pairs=[7, 14])
-    feed(table, ftm(1, ft.RealtimeData1(erpm=-70_007, duty=-0.5)), T0)
-    feed(table, ftm(2, ft.RealtimeData1(erpm=70_000, duty=0.25)), T0)
-    feed(table, ftm(2, ft.RealtimeData0(motor_current_a=30.5, battery_current_a=-2.25)), T0)
-    feed(table, ftm(2, ft.RealtimeData2(65.5, 80.25, 50.4)), T0)
+    feed(table, ftm(1, records.RealtimeData1(erpm=-70_007, duty=-0.5)), T0)
+    feed(table, ftm(2, records.RealtimeData1(erpm=70_000, duty=0.25)), T0)
+    feed(table, ftm(2, records.RealtimeData0(motor_current_a=30.5, battery_current_a=-2.25)), T0)
+    feed(table, ftm(2, records.RealtimeData2(65.5, 80.25, 50.4)), T0)
     first, second = table.snapshot(T0)
     assert (first.rpm, first.throttle) == (-10_001, -0.5)  # toward zero: |reverse| = |forward|
     assert (second.rpm, second.throttle) == (5_000, 0.25)
@@ -45,6 +46,6 @@ def test_ft_frames_signed_rpm_by_pole_pairs() -> None:
 
 
 def test_node_of_malformed_frames() -> None:
-    family = registry.family("ft")
-    assert family.node_of(can.Message(arbitration_id=0x0000050C, data=b"\0" * 8)) == 5
-    assert family.node_of(can.Message(arbitration_id=0x123, is_extended_id=False)) is None
+    decoder = registry.family("ft").decoder()
+    assert decoder.node_of(can.Message(arbitration_id=0x0000050C, data=b"\0" * 8)) == 5
+    assert decoder.node_of(can.Message(arbitration_id=0x123, is_extended_id=False)) is None

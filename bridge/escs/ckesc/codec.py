@@ -1,8 +1,11 @@
-"""CKESC decoding and encoding of whole frames, and the throttle hot path."""
+"""CKESC frames: the envelope (:class:`CkescFrame`), decoding and encoding of whole frames
+through the type table of :mod:`~bridge.escs.ckesc.messages` and
+:mod:`~bridge.escs.ckesc.services`, and the throttle hot path. Pure: no I/O, clock or logging."""
 
 from __future__ import annotations
 
 from collections.abc import Container, Sequence
+from dataclasses import dataclass
 from typing import Final
 
 import can
@@ -14,44 +17,57 @@ from bridge.errors import (
     UnknownTypeError,
     ValueRangeError,
 )
-from bridge.escs.ckesc import _services  # noqa: F401 - registers the service types
-from bridge.escs.ckesc._frame import (
-    _CODECS_BY_RECORD,
-    _MESSAGE_CODECS,
-    _SERVICE_CODECS,
-    CkescFrame,
-    _Codec,
+from bridge.escs.ckesc import layout, records
+from bridge.escs.ckesc.layout import TypeCodec
+from bridge.escs.ckesc.messages import MESSAGE_TYPES, bits_10b, bits_12b, bits_14b
+from bridge.escs.ckesc.services import SERVICE_TYPES
+from bridge.escs.uavcan_v0 import (
+    MAX_NODE_ID,
+    PRIORITY_HIGHEST,
+    message_id,
+    service_id,
+    tail_byte,
 )
-from bridge.escs.ckesc._messages import (
-    _bits_10b,
-    _bits_12b,
-    _bits_14b,
-    _count_error,
-)
-from bridge.escs.ckesc._records import (
-    CkescMessage,
-)
-from bridge.escs.ckesc._wire import (
-    _NODE,
-    _PRIORITY,
-    _TRANSFER_ID,
-    CHANNELS_PER_GROUP,
-    HOST_NODE_ID,
-    MAX_CHANNELS,
-    MAX_GROUP,
-    MESSAGE_TYPE_RANGE,
-    SERVICE_SET_ID,
-    SERVICE_TYPE_RANGE,
-    TYPE_RAW_COMMAND_10B,
-    TYPE_RAW_COMMAND_12B,
-    TYPE_RAW_COMMAND_14B,
-    _field,
-)
-from bridge.escs.uavcan_v0 import MAX_NODE_ID, PRIORITY_HIGHEST, message_id, tail_byte
+
+# The type table, keyed by plain ints so that a look-up allocates nothing. Messages:
+# ``type_id << 1 | (source != host)``; a type sent one way only answers both keys, a type sent
+# both ways has a row per direction. Services: ``service_type << 1 | is_request``.
+_BY_RECORD: Final[dict[type, TypeCodec]] = {}
+_MESSAGE_CODECS: Final[dict[int, TypeCodec]] = {}
+_SERVICE_CODECS: Final[dict[int, TypeCodec]] = {}
+for _row in MESSAGE_TYPES:
+    _BY_RECORD[_row.record] = _row
+    _MESSAGE_CODECS[_row.type_id << 1 | (not _row.from_host)] = _row
+    _MESSAGE_CODECS.setdefault(_row.type_id << 1 | _row.from_host, _row)
+for _row in SERVICE_TYPES:
+    _BY_RECORD[_row.record] = _row
+    _SERVICE_CODECS.setdefault(_row.type_id << 1 | _row.from_host, _row)
 
 
-def _codec_of(message: CkescMessage) -> _Codec:
-    codec = _CODECS_BY_RECORD.get(type(message))
+@dataclass(frozen=True, slots=True)
+class CkescFrame:
+    """One CKESC frame: the CAN ID's fields around a payload record.
+
+    ``destination_node`` is ``None`` for message (broadcast) frames; ``transfer_id`` is
+    ``None`` for RawCommand_10b (no tail byte) and MSG_EXP12 (whose tail holds the record kind).
+    """
+
+    priority: int
+    source_node: int
+    destination_node: int | None
+    transfer_id: int | None
+    message: records.CkescMessage
+
+    @property
+    def node_id(self) -> int:
+        """The ESC this frame is from or to: a request's destination, else the source."""
+        if self.destination_node is not None and _BY_RECORD[type(self.message)].from_host:
+            return self.destination_node
+        return self.source_node
+
+
+def _codec_of(message: records.CkescMessage) -> TypeCodec:
+    codec = _BY_RECORD.get(type(message))
     if codec is None:
         raise TypeError(f"not a CKESC record: {message!r}")
     return codec
@@ -91,7 +107,7 @@ def decode(msg: can.Message, esc_nodes: Container[int] | None = None) -> CkescFr
         destination = can_id >> 8 & 0x7F
         codec = _SERVICE_CODECS.get(type_id << 1 | (can_id >> 15 & 1))
         if codec is None:
-            if type_id in SERVICE_TYPE_RANGE:
+            if type_id in records.SERVICE_TYPE_RANGE:
                 kind = "request" if can_id & 0x8000 else "response"
                 raise UnknownTypeError(
                     f"service type {type_id} {kind} is in CKESC's range 200..255 but not defined"
@@ -99,20 +115,22 @@ def decode(msg: can.Message, esc_nodes: Container[int] | None = None) -> CkescFr
             return None
         if esc_nodes is not None:
             host, esc = (source, destination) if codec.from_host else (destination, source)
-            if host != HOST_NODE_ID or (esc not in esc_nodes and type_id != SERVICE_SET_ID):
+            if host != records.HOST_NODE_ID or (
+                esc not in esc_nodes and type_id != records.SERVICE_SET_ID
+            ):
                 return None
     else:
         type_id = can_id >> 8 & 0xFFFF
         destination = None
-        codec = _MESSAGE_CODECS.get(type_id << 1 | (source != HOST_NODE_ID))
+        codec = _MESSAGE_CODECS.get(type_id << 1 | (source != records.HOST_NODE_ID))
         if codec is None:
-            if type_id in MESSAGE_TYPE_RANGE:
+            if type_id in records.MESSAGE_TYPE_RANGE:
                 raise UnknownTypeError(
                     f"message type {type_id} is in CKESC's range 20000..20999 but not defined"
                 )
             return None
         if esc_nodes is not None and (
-            source != HOST_NODE_ID if codec.from_host else source not in esc_nodes
+            source != records.HOST_NODE_ID if codec.from_host else source not in esc_nodes
         ):
             return None
     data = msg.data
@@ -152,13 +170,11 @@ def encode(frame: CkescFrame) -> can.Message:
         TypeError: ``frame.message`` is not a CKESC record.
     """
     codec = _codec_of(frame.message)
-    priority = _field(frame, "priority", _PRIORITY)
-    source = _field(frame, "source_node", _NODE)
+    priority = layout.field_value(frame, "priority", layout.PRIORITY)
+    source = layout.field_value(frame, "source_node", layout.NODE)
     if codec.service:
-        destination = _field(frame, "destination_node", _NODE)
-        can_id = priority << 24 | codec.type_id << 16 | destination << 8 | 0x80 | source
-        if codec.from_host:
-            can_id |= 0x8000
+        destination = layout.field_value(frame, "destination_node", layout.NODE)
+        can_id = service_id(priority, codec.type_id, codec.from_host, destination, source)
     else:
         if frame.destination_node is not None:
             raise ValueRangeError(
@@ -166,15 +182,15 @@ def encode(frame: CkescFrame) -> can.Message:
                 f" = {frame.destination_node!r}, expected None"
             )
         # decode() tells a request from its answer by the source: make sure it will.
-        if _MESSAGE_CODECS[codec.type_id << 1 | (source != HOST_NODE_ID)] is not codec:
+        if _MESSAGE_CODECS[codec.type_id << 1 | (source != records.HOST_NODE_ID)] is not codec:
             sender = "the host (node 0)" if codec.from_host else "an ESC (node 1..0x7D)"
             raise ValueRangeError(
                 f"{codec.name} is sent by {sender}: CkescFrame.source_node = {source}"
             )
-        can_id = priority << 24 | codec.type_id << 8 | source
+        can_id = message_id(priority, codec.type_id, source)
     data = codec.pack(frame.message)
     if codec.has_transfer_id:
-        data += bytes((0xC0 | _field(frame, "transfer_id", _TRANSFER_ID),))
+        data += bytes((0xC0 | layout.field_value(frame, "transfer_id", layout.TRANSFER_ID),))
     elif frame.transfer_id is not None:
         raise ValueRangeError(
             f"{codec.name} carries no transfer ID: CkescFrame.transfer_id"
@@ -183,7 +199,7 @@ def encode(frame: CkescFrame) -> can.Message:
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=True)
 
 
-def default_priority(message: CkescMessage) -> int:
+def default_priority(message: records.CkescMessage) -> int:
     """The priority the seed gives the record's frame type (docs/protocols.md §3.2, §3.6).
 
     Raises:
@@ -192,7 +208,7 @@ def default_priority(message: CkescMessage) -> int:
     return _codec_of(message).priority
 
 
-def type_id_of(message: CkescMessage) -> int:
+def type_id_of(message: records.CkescMessage) -> int:
     """The record's message or service type ID (the key for :meth:`TransferIds.next`).
 
     Raises:
@@ -204,9 +220,15 @@ def type_id_of(message: CkescMessage) -> int:
 # --------------------------------------------------------------------------------------------
 # Throttle hot path: one check per value, one int, one bytes object, one can.Message.
 
-_RAW_14B_ID: Final = message_id(PRIORITY_HIGHEST, TYPE_RAW_COMMAND_14B, HOST_NODE_ID)
-_RAW_12B_ID: Final = message_id(PRIORITY_HIGHEST, TYPE_RAW_COMMAND_12B, HOST_NODE_ID)
-_RAW_10B_ID: Final = message_id(PRIORITY_HIGHEST, TYPE_RAW_COMMAND_10B, HOST_NODE_ID)
+_RAW_14B_ID: Final = message_id(
+    PRIORITY_HIGHEST, records.TYPE_RAW_COMMAND_14B, records.HOST_NODE_ID
+)
+_RAW_12B_ID: Final = message_id(
+    PRIORITY_HIGHEST, records.TYPE_RAW_COMMAND_12B, records.HOST_NODE_ID
+)
+_RAW_10B_ID: Final = message_id(
+    PRIORITY_HIGHEST, records.TYPE_RAW_COMMAND_10B, records.HOST_NODE_ID
+)
 
 
 def _source_node(source_node: int) -> int:
@@ -216,7 +238,7 @@ def _source_node(source_node: int) -> int:
 
 
 def encode_raw_12b(
-    group: int, throttles: Sequence[int], transfer_id: int, source_node: int = HOST_NODE_ID
+    group: int, throttles: Sequence[int], transfer_id: int, source_node: int = records.HOST_NODE_ID
 ) -> can.Message:
     """A RawCommand_12b frame for channels 4 * group - 3 .. 4 * group.
 
@@ -228,9 +250,9 @@ def encode_raw_12b(
             outside 0..2000, transfer_id outside 0..31 or source_node outside 0..0x7D. Values
             are never clamped: limiting them is the caller's safety layer.
     """
-    if not 1 <= group <= MAX_GROUP:
-        raise ValueRangeError(f"RawCommand12b group = {group!r} is not in 1..{MAX_GROUP}")
-    bits = _bits_12b(throttles) | group << 48 | tail_byte(transfer_id) << 56
+    if not 1 <= group <= records.MAX_GROUP:
+        raise ValueRangeError(f"RawCommand12b group = {group!r} is not in 1..{records.MAX_GROUP}")
+    bits = bits_12b(throttles) | group << 48 | tail_byte(transfer_id) << 56
     return can.Message(
         arbitration_id=_RAW_12B_ID | _source_node(source_node),
         data=bits.to_bytes(8, "little"),
@@ -239,14 +261,14 @@ def encode_raw_12b(
 
 
 def encode_raw_14b(
-    throttles: Sequence[int], transfer_id: int, source_node: int = HOST_NODE_ID
+    throttles: Sequence[int], transfer_id: int, source_node: int = records.HOST_NODE_ID
 ) -> can.Message:
     """A RawCommand_14b frame for channels 1..4 (1..4 values, 0..2000; missing ones are 0).
 
     Raises:
         ValueRangeError: as :func:`encode_raw_12b`.
     """
-    bits = _bits_14b(throttles) << 8 | tail_byte(transfer_id)
+    bits = bits_14b(throttles) << 8 | tail_byte(transfer_id)
     return can.Message(
         arbitration_id=_RAW_14B_ID | _source_node(source_node),
         data=bits.to_bytes(8, "big"),
@@ -254,7 +276,9 @@ def encode_raw_14b(
     )
 
 
-def encode_raw_10b(throttles: Sequence[int], source_node: int = HOST_NODE_ID) -> can.Message:
+def encode_raw_10b(
+    throttles: Sequence[int], source_node: int = records.HOST_NODE_ID
+) -> can.Message:
     """A RawCommand_10b frame for channels 1..6 (1..6 values, 0..1000; missing ones are 0).
 
     It has no tail byte, hence no transfer ID.
@@ -265,24 +289,6 @@ def encode_raw_10b(throttles: Sequence[int], source_node: int = HOST_NODE_ID) ->
     """
     return can.Message(
         arbitration_id=_RAW_10B_ID | _source_node(source_node),
-        data=_bits_10b(throttles).to_bytes(8, "little"),
+        data=bits_10b(throttles).to_bytes(8, "little"),
         is_extended_id=True,
     )
-
-
-def raw_12b_groups(throttles: Sequence[int]) -> list[tuple[int, tuple[int, int, int, int]]]:
-    """Split channels 1..n (n = 1..20) into RawCommand_12b ``(group, throttles)`` pairs.
-
-    The last group is padded with 0 (see :func:`encode_raw_12b`); values are not checked here
-    but by the encoder.
-
-    Raises:
-        ValueRangeError: no throttles or more than 20.
-    """
-    if not 1 <= len(throttles) <= MAX_CHANNELS:
-        raise _count_error("RawCommand12b", throttles, MAX_CHANNELS)
-    padded = (*throttles, 0, 0, 0)
-    return [
-        (1 + start // 4, (padded[start], padded[start + 1], padded[start + 2], padded[start + 3]))
-        for start in range(0, len(throttles), CHANNELS_PER_GROUP)
-    ]

@@ -1,22 +1,211 @@
-"""CKESC payload records: one frozen dataclass per message and service type
-(docs/protocols.md §3.2, §3.6)."""
+"""CKESC's vocabulary: the protocol's constants, enumerations and one frozen record per message
+and service type (docs/protocols.md §3.1, §3.2, §3.6); the package docstring describes the
+protocol. Pure data: no I/O, clock or logging.
+
+Longer than 600 lines on purpose: it is the protocol's table of types, one record per row of
+§3.2 and §3.6 with the constants and enumerations its fields take; split, the table would only
+be harder to read whole.
+"""
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
-from typing import TypeAlias
+from typing import Final, TypeAlias
 
-from bridge.escs.ckesc._wire import (
-    CanTestOption,
-    ExpandSetCommand,
-    LedColor,
-    Msg1Status,
-    MsgControlCommand,
-    Rotation,
-    SelfTestFault,
-    TempRecordKind,
-    ThrottleSource,
-)
+# --------------------------------------------------------------------------------------------
+# Protocol constants (docs/protocols.md §1.2, §3.1, §3.2, §3.6)
+
+HOST_NODE_ID: Final = 0
+"""The bridge's own node ID; every CKESC request and throttle command comes from node 0."""
+FACTORY_NODE_ID: Final = 0x7D
+"""An ESC's node ID as shipped; an ESC at this ID sends no telemetry."""
+
+MESSAGE_TYPE_RANGE: Final = range(20000, 21000)
+"""UAVCAN v0's vendor message type IDs, which CKESC uses; other message types are not ours."""
+SERVICE_TYPE_RANGE: Final = range(200, 256)
+"""UAVCAN v0's vendor service type IDs, which CKESC uses; other service types are not ours."""
+
+TYPE_CAN_TEST: Final = 20000
+TYPE_MSG_CONTROL: Final = 20010
+TYPE_GET_ESC_ID: Final = 20013
+TYPE_MSG1: Final = 20050
+TYPE_MSG2: Final = 20051
+TYPE_MSG3: Final = 20052
+TYPE_MSG_EXP1: Final = 20053
+TYPE_MSG_EXP2: Final = 20054
+TYPE_MSG_EXP3: Final = 20055
+TYPE_MSG_EXP4: Final = 20056
+TYPE_MSG_EXP5: Final = 20057
+TYPE_MSG_EXP6: Final = 20058
+TYPE_MSG_EXP7: Final = 20059
+TYPE_MSG_EXP8: Final = 20060
+TYPE_MSG_EXP9: Final = 20061
+TYPE_MSG_EXP10: Final = 20062
+TYPE_MSG_EXP11: Final = 20063
+TYPE_MSG_EXP12: Final = 20064
+TYPE_RAW_COMMAND_14B: Final = 20100
+TYPE_RAW_COMMAND_12B: Final = 20101
+TYPE_RAW_COMMAND_10B: Final = 20102
+
+SERVICE_SET_ID: Final = 210
+SERVICE_SET_BAUD: Final = 211
+SERVICE_SET_LED: Final = 212
+SERVICE_SET_ROTATION: Final = 213
+SERVICE_SET_FREQ: Final = 214
+SERVICE_THROTTLE_SELECT: Final = 215
+SERVICE_SELF_TEST: Final = 216
+SERVICE_EXPAND_SET: Final = 222
+SERVICE_GET_TEMP_RECORD: Final = 223
+"""Defined by the seed without a payload; decoding it raises ``UnknownTypeError``."""
+SERVICE_CLEAR_TEMP_RECORD: Final = 224
+"""Defined by the seed without a payload; decoding it raises ``UnknownTypeError``."""
+SERVICE_ESC_INFO: Final = 240
+SERVICE_MAINTENANCE: Final = 241
+SERVICE_MAJOR_CONFIG: Final = 242
+
+THROTTLE_MAX: Final = 2000
+"""Full throttle for RawCommand_14b/12b (and MSG1's throttle report)."""
+THROTTLE_10B_MAX: Final = 1000
+"""Full throttle for RawCommand_10b; the ESC doubles the value."""
+MAX_CHANNELS: Final = 20
+"""Throttle channels an ESC can be assigned (Set ID), i.e. RawCommand_12b groups 1..5 of 4."""
+CHANNELS_PER_GROUP: Final = 4
+MAX_GROUP: Final = 5
+
+BAUD_RATES_BPS: Final = (1_000_000, 500_000, 250_000, 200_000, 125_000, 100_000, 50_000)
+"""Bit rate for each Set Baud code (the index); 1 (500 kbit/s) is the factory setting."""
+
+
+# --------------------------------------------------------------------------------------------
+# Enumerations
+
+
+class Msg1Status(enum.IntFlag):
+    """MSG1 status word (seed 4.4.4). Bits 7..0 are the power-on self-test's findings."""
+
+    DIRECTION_CCW = 1 << 15
+    """Set: the motor turns counter-clockwise (reversed); clear: clockwise."""
+    THROTTLE_SOURCE_PWM = 1 << 14
+    """Set: the throttle comes from the PWM input; clear: from CAN."""
+    COMMS_FAULT = 1 << 13
+    """No valid CAN throttle for more than 200 ms; cleared by the next valid command."""
+    UNDER_VOLTAGE = 1 << 12
+    OVER_VOLTAGE = 1 << 11
+    OVER_CURRENT = 1 << 10
+    OVER_TEMPERATURE = 1 << 9
+    RUNNING = 1 << 8
+    SELF_TEST_COM_INPUT_LOW = 1 << 7
+    SELF_TEST_PHASE_C_OUTPUT_LOW = 1 << 6
+    SELF_TEST_PHASE_B_OUTPUT_LOW = 1 << 5
+    SELF_TEST_PHASE_A_OUTPUT_LOW = 1 << 4
+    SELF_TEST_COM_INPUT_HIGH = 1 << 3
+    SELF_TEST_PHASE_C_OUTPUT_HIGH = 1 << 2
+    SELF_TEST_PHASE_B_OUTPUT_HIGH = 1 << 1
+    SELF_TEST_PHASE_A_OUTPUT_HIGH = 1 << 0
+    SELF_TEST_ERRORS = 0xFF
+    """Mask of the eight self-test bits."""
+
+
+class SelfTestFault(enum.IntEnum):
+    """Self-test fault code 1 (MSG_EXP9, Maintenance option 2; seed appendix). 0 is a pass."""
+
+    NONE = 0x00
+    COM_LOW = 0x01
+    COM_HIGH = 0x02
+    PHASE_A_HIGH = 0x11
+    PHASE_B_HIGH = 0x12
+    PHASE_C_HIGH = 0x13
+    PHASE_A_LOW = 0x21
+    PHASE_B_LOW = 0x22
+    PHASE_C_LOW = 0x23
+
+
+class CanTestOption(enum.IntEnum):
+    """CANTest option byte (seed 4.4.1)."""
+
+    REPORT = 0x00
+    """An ESC's periodic report while in bus test mode."""
+    ENTER = 0xAA
+    LEAVE = 0x55
+
+
+class MsgControlCommand(enum.IntEnum):
+    """MSGControl command word (seed 4.4.2)."""
+
+    ACK = 0x0000_0000
+    """The ESCs' answer to any command."""
+    PAUSE = 0x5555_5555
+    """Stop all periodic reports."""
+    RESUME_MSG = 0xAAAA_AAAA
+    """Resume MSG1..MSG3."""
+    RESUME_EXP = 0xEEEE_EEEE
+    """Resume MSG_EXP1..MSG_EXP12."""
+
+
+class TempRecordKind(enum.IntEnum):
+    """Which maximum a MSG_EXP12 temperature record holds (its tail byte's transfer ID)."""
+
+    MCU = 1
+    MOS = 2
+    CAPACITOR = 3
+    MOTOR = 4
+
+
+class LedColor(enum.IntFlag):
+    """Set LED colour bits (seed 4.4.20); ``LedColor(0)`` is off. Other bits are kept as sent."""
+
+    BLUE = 1 << 0
+    GREEN = 1 << 1
+    RED = 1 << 2
+
+
+class Rotation(enum.IntEnum):
+    """Set Rotation argument (seed 4.4.21)."""
+
+    NORMAL = 0x00
+    REVERSED = 0x01
+    QUERY = 0xFF
+    """Request only: ask for the current direction, which the response carries."""
+
+
+class ThrottleSource(enum.IntEnum):
+    """Where the ESC takes its throttle from (Throttle Select, seed 4.4.23)."""
+
+    CAN = 0x00
+    PWM_AND_CAN = 0x01
+
+
+class ExpandSetCommand(enum.IntEnum):
+    """Expand Set ``set_cmd`` (seed 4.4.25; the seed's five-digit 0xffffN means 0xFFFN)."""
+
+    DIRECTION = 0xFFF0
+    """Part 1 normal, 2 reversed."""
+    LED = 0xFFF1
+    """Part 0 off, 1 red, 2 green, 3 blue."""
+    THROTTLE_INTERFACE = 0xFFF2
+    """Part 1 PWM, 2 PWM+TCAN, 3 TCAN, 4 DShot, 5 PWM+UAVCAN, 6 UAVCAN (1, 4 reserved)."""
+    ACTIVE_FREEWHEELING = 0xFFF4
+    """Synchronous rectification: part 0 off, 1 on."""
+    TIMING = 0xFFF5
+    """Commutation advance, part 1..4 low to high (reserved)."""
+    TIMING_2 = 0xFFF6
+    """Second advance setting, part 1..4 (reserved)."""
+    LOAD_TYPE = 0xFFF7
+    """Part 1 light, 2 standard, 3 heavy, 4 very heavy (reserved)."""
+    PROP_LOCK = 0xFFF8
+    """Holding torque on a stopped propeller: part 0 off, 1 weak, 2 medium, 3 strong."""
+    STARTUP_ACCELERATION = 0xFFF9
+    """Part 0..15: higher starts faster."""
+    SIGNAL_LOSS_RATE = 0xFFFA
+    """Part 0..15: higher cuts the throttle faster when the signal is lost."""
+    READ_TEMP_RECORD = 0xFFFB
+    """Part 1: send the temperature records (as four MSG_EXP12 frames)."""
+    BAUD = 0xFFFC
+    """Part 0..6: a Set Baud code."""
+    SYSTEM = 0xFFFE
+    """Part 0x00 factory reset (not enabled in firmware), 0x10 leave / 0x11 enter test mode."""
+
 
 # --------------------------------------------------------------------------------------------
 # Message (broadcast) records
@@ -122,33 +311,33 @@ class MsgExp1:
 
 
 @dataclass(frozen=True, slots=True)
-class _DebugData:
+class DebugData:
     data: bytes
     """Six bytes of vendor debug data, kept raw."""
 
 
 @dataclass(frozen=True, slots=True)
-class MsgExp2(_DebugData):
+class MsgExp2(DebugData):
     """MSG_EXP2 (20054): vendor debug data."""
 
 
 @dataclass(frozen=True, slots=True)
-class MsgExp3(_DebugData):
+class MsgExp3(DebugData):
     """MSG_EXP3 (20055): vendor debug data."""
 
 
 @dataclass(frozen=True, slots=True)
-class MsgExp4(_DebugData):
+class MsgExp4(DebugData):
     """MSG_EXP4 (20056): vendor debug data."""
 
 
 @dataclass(frozen=True, slots=True)
-class MsgExp5(_DebugData):
+class MsgExp5(DebugData):
     """MSG_EXP5 (20057): vendor debug data."""
 
 
 @dataclass(frozen=True, slots=True)
-class MsgExp6(_DebugData):
+class MsgExp6(DebugData):
     """MSG_EXP6 (20058): vendor debug data."""
 
 
@@ -266,7 +455,7 @@ class RawCommand10b:
 
 
 @dataclass(frozen=True, slots=True)
-class _SetId:
+class SetId:
     node_id: int
     """1..0x7D."""
     throttle_channel: int
@@ -274,34 +463,34 @@ class _SetId:
 
 
 @dataclass(frozen=True, slots=True)
-class SetIdRequest(_SetId):
+class SetIdRequest(SetId):
     """Set ID (210). The ESC ignores the destination: only one ESC may be on the bus, and only
     in its first 120 s after power-up. Saved to flash."""
 
 
 @dataclass(frozen=True, slots=True)
-class SetIdResponse(_SetId):
+class SetIdResponse(SetId):
     """Set ID (210) response: the values set."""
 
 
 @dataclass(frozen=True, slots=True)
-class _SetBaud:
+class SetBaud:
     baud_code: int
     """0..6, an index into :data:`BAUD_RATES_BPS`."""
 
 
 @dataclass(frozen=True, slots=True)
-class SetBaudRequest(_SetBaud):
+class SetBaudRequest(SetBaud):
     """Set Baud (211): first 120 s after power-up only; applies after a power cycle."""
 
 
 @dataclass(frozen=True, slots=True)
-class SetBaudResponse(_SetBaud):
+class SetBaudResponse(SetBaud):
     """Set Baud (211) response: the code set."""
 
 
 @dataclass(frozen=True, slots=True)
-class _SetLed:
+class SetLed:
     save: bool
     """Save to flash as the default (else lost at power-off)."""
     color: LedColor
@@ -311,32 +500,32 @@ class _SetLed:
 
 
 @dataclass(frozen=True, slots=True)
-class SetLedRequest(_SetLed):
+class SetLedRequest(SetLed):
     """Set LED (212): only while reports are enabled (not paused by MSGControl)."""
 
 
 @dataclass(frozen=True, slots=True)
-class SetLedResponse(_SetLed):
+class SetLedResponse(SetLed):
     """Set LED (212) response: the values set."""
 
 
 @dataclass(frozen=True, slots=True)
-class _SetRotation:
+class SetRotation:
     rotation: Rotation | int
 
 
 @dataclass(frozen=True, slots=True)
-class SetRotationRequest(_SetRotation):
+class SetRotationRequest(SetRotation):
     """Set Rotation (213): motor stopped, reports enabled; saved to flash."""
 
 
 @dataclass(frozen=True, slots=True)
-class SetRotationResponse(_SetRotation):
+class SetRotationResponse(SetRotation):
     """Set Rotation (213) response: the direction now set (also the answer to a query)."""
 
 
 @dataclass(frozen=True, slots=True)
-class _SetFreq:
+class SetFreq:
     write: bool
     """True: set the intervals; False: read them (the ESC ignores the values sent)."""
     msg1_interval_ms: int
@@ -345,7 +534,7 @@ class _SetFreq:
 
 
 @dataclass(frozen=True, slots=True)
-class SetFreqRequest(_SetFreq):
+class SetFreqRequest(SetFreq):
     """Set/Get Freq (214): MSG1..3 report intervals, 20..500 ms in 2 ms steps for a write.
 
     Factory values are 20, 100 and 500 ms; the ESC ignores a write outside the range.
@@ -353,22 +542,22 @@ class SetFreqRequest(_SetFreq):
 
 
 @dataclass(frozen=True, slots=True)
-class SetFreqResponse(_SetFreq):
+class SetFreqResponse(SetFreq):
     """Set/Get Freq (214) response: the intervals now in use."""
 
 
 @dataclass(frozen=True, slots=True)
-class _ThrottleSelect:
+class ThrottleSelect:
     source: ThrottleSource | int
 
 
 @dataclass(frozen=True, slots=True)
-class ThrottleSelectRequest(_ThrottleSelect):
+class ThrottleSelectRequest(ThrottleSelect):
     """Throttle Select (215): at zero throttle only; saved to flash."""
 
 
 @dataclass(frozen=True, slots=True)
-class ThrottleSelectResponse(_ThrottleSelect):
+class ThrottleSelectResponse(ThrottleSelect):
     """Throttle Select (215) response: the source now set."""
 
 

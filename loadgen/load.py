@@ -38,8 +38,8 @@ name                   loads
 
 How a load runs and stops
 -------------------------
-A started load is one supervisor process (``python -m bridge.sim.load_supervisor``, the
-module :mod:`bridge.sim.load_supervisor`), in a session and process group of its own, at the
+A started load is one supervisor process (``python loadgen/supervisor.py``, the module
+:mod:`loadgen.supervisor`), in a session and process group of its own, at the
 load's nice level and SCHED_OTHER whatever its caller runs at. It runs the generator itself or
 starts its children (spinners, compilers). It says "ready" on its stdout once the load is on,
 and its report when it ends.
@@ -63,7 +63,7 @@ behind its rate does not burst to catch up, it reports the rate it reached.
 This module is the caller's side, one job, a little over 600 lines: the loads' specs, the
 presets, and the :class:`Load` handle (a third of the module: the start, stop and clean-up
 protocol described above). What runs in the load's own process is
-:mod:`bridge.sim.load_supervisor`.
+:mod:`loadgen.supervisor`.
 """
 
 from __future__ import annotations
@@ -86,7 +86,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, Final, Literal, TypeAlias
 
-from bridge._compat import Self
 from bridge.errors import BridgeError, ConfigError
 
 __all__ = [
@@ -141,7 +140,8 @@ GROUP_GONE_TIMEOUT_S: Final = 2.0
 
 _NICE = range(-20, 20)
 _CLOCK_TICKS: Final = os.sysconf("SC_CLK_TCK")
-_SUPERVISOR_MODULE: Final = "bridge.sim.load_supervisor"
+_SUPERVISOR: Final = str(Path(__file__).with_name("supervisor.py"))
+"""Run by its path: this package is not installed (the bench and the tests find it beside them)."""
 
 
 # -- what a load is -----------------------------------------------------------------------------
@@ -408,7 +408,7 @@ class Load:
         """CPU time the load has used so far (live processes and the children they reaped)."""
         return _cpu_seconds(self.pids())
 
-    def start(self, timeout_s: float = START_TIMEOUT_S) -> Self:
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> Load:
         """Start the supervisor and wait until it says the load is on.
 
         Raises:
@@ -438,7 +438,7 @@ class Load:
         # Kept open for the load's life (its stderr goes there), closed by stop().
         self._stderr = tempfile.TemporaryFile()  # noqa: SIM115
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", _SUPERVISOR_MODULE, json.dumps(spec)],
+            [sys.executable, _SUPERVISOR, json.dumps(spec)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=self._stderr,
@@ -567,7 +567,7 @@ class Load:
         text = self._stderr.read().decode(errors="replace")
         return "\n".join(text.strip().splitlines()[-lines:])
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> Load:
         return self.start()
 
     def __exit__(
@@ -598,7 +598,7 @@ class LoadSet:
         self.loads = tuple(loads)
         self.name = name or "+".join(load.name for load in self.loads) or "idle"
 
-    def start(self) -> Self:
+    def start(self) -> LoadSet:
         """Start every load.
 
         Raises:
@@ -632,7 +632,7 @@ class LoadSet:
     def __len__(self) -> int:
         return len(self.loads)
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> LoadSet:
         return self.start()
 
     def __exit__(

@@ -1,8 +1,10 @@
-"""FT encoding and decoding: records to frames and back (docs/protocols.md §4)."""
+"""FT encoding and decoding: records to frames and back (docs/protocols.md §4). Pure: no I/O,
+clock or logging."""
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from typing import Final, NamedTuple, TypeAlias
 
@@ -16,18 +18,7 @@ from bridge.errors import (
     NotExtendedIdError,
     ValueRangeError,
 )
-from bridge.escs.ft._records import (
-    _GEAR_VALUES,
-    _GEARS,
-    _I16X3,
-    _I16X3_U16,
-    _I24X2_U16,
-    _I32,
-    _I32_U8,
-    _I32_U8_U16,
-    _I32_U16,
-    _RECORD_COMMANDS,
-    _U16,
+from bridge.escs.ft.records import (
     COMMAND_RECORDS,
     CURRENT_SCALE,
     DUTY_MAX,
@@ -71,6 +62,21 @@ from bridge.escs.ft._records import (
     can_id,
     crc16_modbus,
 )
+
+_I32 = struct.Struct(">i")
+_I32_U8 = struct.Struct(">iB")
+_I32_U8_U16 = struct.Struct(">iBH")
+_I32_U16 = struct.Struct(">iH")
+_U16 = struct.Struct(">H")
+# An i24 is read as its signed top 16 bits and unsigned low 8 bits: (hi << 8) | lo then
+# sign-extends bit 23 for free, and one unpack call reads the whole frame.
+_I24X2_U16 = struct.Struct(">hBhBH")
+_I16X3 = struct.Struct(">hhh")
+_I16X3_U16 = struct.Struct(">hhhH")
+
+_GEARS: Final = tuple(Gear)
+_GEAR_VALUES: Final = frozenset(_GEARS)
+_RECORD_COMMANDS: Final = {key: command for command, key in COMMAND_RECORDS.items()}
 
 # ---------------------------------------------------------------------------------------------
 # Encoding

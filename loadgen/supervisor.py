@@ -1,8 +1,8 @@
-"""The supervisor of one load (:mod:`bridge.sim.load`), run in the load's own process as
-``python -m bridge.sim.load_supervisor SPEC_JSON``: it runs the generator the spec names (or
+"""The supervisor of one load (:mod:`loadgen.load`), run in the load's own process as
+``python loadgen/supervisor.py SPEC_JSON``: it runs the generator the spec names (or
 starts its children), says "ready" on stdout once the load is on, stops on a signal or when its
 stdin closes (the caller stopped it, or died), kills and reaps its children, and prints its
-report. The caller's side (specs, presets, starting and stopping) is :mod:`bridge.sim.load`.
+report. The caller's side (specs, presets, starting and stopping) is :mod:`loadgen.load`.
 """
 
 from __future__ import annotations
@@ -324,6 +324,7 @@ def _junk_frames(count: int, extended_share: float, seed: int) -> list[Any]:
     from bridge.escs import registry
 
     rng = random.Random(seed)
+    decoders = [family.decoder() for family in registry.families()]
     frames: list[Any] = []
     while len(frames) < count:
         extended = rng.random() < extended_share
@@ -334,7 +335,7 @@ def _junk_frames(count: int, extended_share: float, seed: int) -> list[Any]:
         )
         if extended:
             try:
-                if any(family.decode(msg) is not None for family in registry.families()):
+                if any(decoder.decode(msg) is not None for decoder in decoders):
                     continue
             except CodecError:
                 continue

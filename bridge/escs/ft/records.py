@@ -1,16 +1,13 @@
 """FT constants, the CRC-16, enumerations, records and CAN IDs (docs/protocols.md §4); the package
-docstring describes the protocol."""
+docstring describes the protocol. Pure: no I/O, clock or logging."""
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Final, TypeAlias
 
-from bridge.errors import (
-    ValueRangeError,
-)
+from bridge.errors import ValueRangeError
 
 # ---------------------------------------------------------------------------------------------
 # Protocol constants
@@ -52,17 +49,6 @@ ID_CURRENT_DLCS: Final = (6, 7)
 
 CRC16_MODBUS_POLY_REFLECTED: Final = 0xA001
 CRC16_MODBUS_INIT: Final = 0xFFFF
-
-_I32 = struct.Struct(">i")
-_I32_U8 = struct.Struct(">iB")
-_I32_U8_U16 = struct.Struct(">iBH")
-_I32_U16 = struct.Struct(">iH")
-_U16 = struct.Struct(">H")
-# An i24 is read as its signed top 16 bits and unsigned low 8 bits: (hi << 8) | lo then
-# sign-extends bit 23 for free, and one unpack call reads the whole frame.
-_I24X2_U16 = struct.Struct(">hBhBH")
-_I16X3 = struct.Struct(">hhh")
-_I16X3_U16 = struct.Struct(">hhhH")
 
 
 def _crc16_modbus_table() -> tuple[int, ...]:
@@ -134,9 +120,6 @@ class Gear(IntEnum):
     HIGH = 3
     REVERSE = 4
 
-
-_GEARS: Final = tuple(Gear)
-_GEAR_VALUES: Final = frozenset(_GEARS)
 
 # ---------------------------------------------------------------------------------------------
 # Records. Plain data: values are checked once, when encoded (see encode_command), so that
@@ -297,8 +280,6 @@ COMMAND_RECORDS: Final[dict[Command, tuple[type[FtCommand], bool, bool]]] = {
     Command.SET_CURRENT_BRAKE_PERCENT: (SetCurrentBrakePercent, False, False),
 }
 """Command ID → (record class, crc, gear present); one-to-one, the module docstring's table."""
-
-_RECORD_COMMANDS: Final = {key: command for command, key in COMMAND_RECORDS.items()}
 
 # ---------------------------------------------------------------------------------------------
 # CAN ID
