@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Final
 
 from bridge.escs.tools import BusFlags
 from bridge.escs.vesc.records import BROADCAST_ID, Packet
@@ -18,8 +18,12 @@ from bridge.escs.vesc.records import BROADCAST_ID, Packet
 if TYPE_CHECKING:
     from bridge.escs.vesc.setup import FoundVesc
 
-_OK = 0
-_FAILED = 1
+SUMMARY: Final = "VESC scan by PING"
+"""What this command does, for ``esc-bridge esc --help``."""
+
+# Exit statuses, as every esc-bridge command's.
+_OK: Final = 0
+_FAILED: Final = 1
 
 
 def _controller_id(text: str) -> int:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection
-from typing import TYPE_CHECKING, Any, Final, cast
+from typing import TYPE_CHECKING, Final
 
 from bridge.errors import ConfigError
 from bridge.escs.family import BusFigures, EscSetup
@@ -49,10 +49,9 @@ class VescFamily:
     def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
         return bus.reader_filters(esc_ids, read_back_commands)
 
-    def check(self, setup: EscSetup[Any], rate_hz: int) -> EscSetup[Any]:
-        keys = cast(VescKeys, setup.keys)
+    def check(self, setup: EscSetup[VescKeys], rate_hz: int) -> EscSetup[VescKeys]:
         period_ms = 1000 / rate_hz
-        timeout_ms = keys.vesc_timeout_ms
+        timeout_ms = setup.keys.vesc_timeout_ms
         if period_ms * MIN_REFRESHES_PER_TIMEOUT > timeout_ms:
             slowest = math.ceil(1000 * MIN_REFRESHES_PER_TIMEOUT / timeout_ms)
             raise ConfigError(
@@ -63,9 +62,8 @@ class VescFamily:
             )
         return setup
 
-    def driver(self, setup: EscSetup[Any]) -> VescDriver:
-        return VescDriver(setup.ids, cast(VescKeys, setup.keys))
+    def driver(self, setup: EscSetup[VescKeys]) -> VescDriver:
+        return VescDriver(setup.ids, setup.keys)
 
-    def bus_figures(self, setup: EscSetup[Any], rate_hz: float) -> BusFigures:
-        keys = cast(VescKeys, setup.keys)
-        return bus.bus_figures(len(setup.ids), keys.vesc_status_hz, rate_hz)
+    def bus_figures(self, setup: EscSetup[VescKeys], rate_hz: float) -> BusFigures:
+        return bus.bus_figures(len(setup.ids), setup.keys.vesc_status_hz, rate_hz)

@@ -42,7 +42,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Final, cast
+from typing import Any, Final
 
 import can
 
@@ -80,7 +80,7 @@ from bridge.escs.vesc.records import (
     VescFrame,
     VescStatus,
 )
-from bridge.sim.base import Faults
+from bridge.sim.base import Faults, SimEsc
 from bridge.sim.motor import Motor, MotorParams
 
 __all__ = [
@@ -372,10 +372,10 @@ DEMO_SETTINGS: Final[dict[str, dict[str, Any]]] = {"can": {"bitrate": 1_000_000}
 bus keeps it under the bus-load ceiling."""
 
 
-def simulators(setup: EscSetup[Any], motor_params: MotorParams | None) -> list[SimVesc]:
+def simulators(setup: EscSetup[VescKeys], motor_params: MotorParams | None) -> list[SimEsc]:
     """Simulated VESCs with ``setup``'s IDs, set up as docs/escs.md says: STATUS 1-5 at
     ``vesc_status_hz`` (none at 0, as from the factory) and the ``vesc_timeout_ms`` timeout."""
-    keys = cast(VescKeys, setup.keys)
+    keys = setup.keys
     status = STATUS_1_TO_5 if keys.vesc_status_hz > 0 else frozenset()
     return [
         SimVesc(

@@ -282,11 +282,13 @@ def test_simulators_are_set_up_as_the_configuration_says() -> None:
     from bridge.escs.vesc.keys import VescKeys
     from bridge.escs.vesc.sim import simulators
 
-    escs = simulators(EscSetup((1, 7), VescKeys(vesc_status_hz=25.0, vesc_timeout_ms=300)), PARAMS)
+    built = simulators(EscSetup((1, 7), VescKeys(vesc_status_hz=25.0, vesc_timeout_ms=300)), PARAMS)
+    escs = [esc for esc in built if isinstance(esc, SimVesc)]
+    assert len(escs) == len(built)
     assert [esc.node_id for esc in escs] == [1, 7]
     assert all(esc.status == STATUS_1_TO_5 and esc.status_hz == 25.0 for esc in escs)
     assert all(esc.timeout_s == 0.3 and esc.motor.params == PARAMS for esc in escs)
     assert escs[0].motor is not escs[1].motor
     # vesc_status_hz 0: VESCs as from the factory, no status frames.
     (quiet,) = simulators(EscSetup((3,), VescKeys(vesc_status_hz=0.0)), None)
-    assert quiet.status == frozenset()
+    assert isinstance(quiet, SimVesc) and quiet.status == frozenset()
