@@ -116,7 +116,7 @@ def test_telemetry_from_other_ids_is_pointed_at() -> None:
 def test_a_family_whose_reports_are_off_from_the_factory_says_how_to_turn_them_on() -> None:
     # A VESC sends no status frames until VESC Tool turns them on: its set-up tool says how.
     w = Watched({"output": {"protocol": "vesc"}})
-    w.esc(2, GRACE_S - 1)
+    w.esc(2, GRACE_S - 0.1)
     w.frames = 40
     (said,) = [text for _, text in w.at(GRACE_S) if "telemetry" in text]
     assert said.startswith("no telemetry from VESC ESC IDs 1, 3, 4 (motors 1, 3, 4) of 4 on ")
