@@ -24,6 +24,7 @@ import pytest
 import zenoh
 from conftest import Autopilot, Daemon, MavlinkReceiver, Observer, free_port, multicast_bus
 
+from bridge.daemon.absence import GRACE_S
 from bridge.errors import CodecError
 from bridge.escs.vesc.codec import decode, encode
 from bridge.escs.vesc.records import (
@@ -257,7 +258,11 @@ def test_a_vesc_with_its_status_frames_off_is_named_once_with_the_setting(
     try:
         daemon = start_daemon("--config", str(config))
         autopilot.start_stream(20)
-        time.sleep(12)  # the absence watch's grace (5 s), then a few of its looks
+        daemon.loop_pid()  # spawned
+        # The absence watch looks GRACE_S (5 s) after the loop's start, then once a second; at
+        # load 8 the start and the supervisor may take seconds more: wait well past, within the
+        # 30 s after which it would repeat the warning.
+        time.sleep(GRACE_S + 8.0)
     finally:
         vescs.close()
     assert daemon.stop() == 0

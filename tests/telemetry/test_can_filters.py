@@ -70,6 +70,8 @@ CKESC_TELEMETRY = range(20050, 20065)  # MSG1 .. MSG_EXP12
 CKESC_COMMANDS = (20100, 20101, 20102)  # RawCommand_14b, _12b, _10b
 FT_TELEMETRY = (0x0B, 0x0C, 0x0D)
 FT_COMMANDS = (*range(0x00, 0x06), *range(0x12, 0x1C))
+VESC_TELEMETRY = (9, 14, 15, 16, 27, 58)  # STATUS .. STATUS_6: packet << 8 | VESC ID
+VESC_COMMANDS = (0, 1, 2, 3, 10)  # SET_DUTY, SET_CURRENT, SET_CURRENT_BRAKE, SET_RPM, _REL
 
 _channels = itertools.count()
 
@@ -90,6 +92,9 @@ def is_ours(
         )
     if can_id >> 16:
         return False
+    if protocol == "vesc":
+        packet, vesc = can_id >> 8, can_id & 0xFF
+        return vesc in ids and (packet in VESC_TELEMETRY or (read_back and packet in VESC_COMMANDS))
     esc, command = can_id >> 8, can_id & 0xFF
     return esc in ids and (command in FT_TELEMETRY or (read_back and command in FT_COMMANDS))
 
@@ -267,6 +272,9 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
         ("ft", [1, 2, 3, 4], False, 6),  # {0x0B}, {0x0C, 0x0D} x 3
         ("ft", [1, 2, 3, 4], True, 18),  # 19 command IDs in 6 blocks
         ("ft", [0, 1, 2, 3, 4, 5, 6, 7], False, 2),
+        ("vesc", [1, 2, 3, 4], False, 15),  # {9}, {14, 15}, {16}, {27}, {58} x 3
+        ("vesc", [1, 2, 3, 4], True, 21),  # with commands 0..3 and 10: 11 packets in 7 blocks
+        ("vesc", [0, 1, 2, 3, 4, 5, 6, 7], False, 5),
     ],
 )
 def test_filter_counts(protocol: str, ids: list[int], read_back: bool, count: int) -> None:
@@ -324,6 +332,15 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
             st.booleans(),
             st.one_of(nodes, st.just(0)),
         )
+    elif protocol == "vesc":
+        packets = st.one_of(st.sampled_from([*VESC_TELEMETRY, *VESC_COMMANDS]), st.integers(0, 255))
+        high = st.one_of(st.just(0), st.integers(1, 0x1FFF))
+        near = st.builds(
+            lambda top, packet, vesc: top << 16 | packet << 8 | vesc,
+            high,
+            packets,
+            st.one_of(nodes, st.integers(0, 255)),
+        )
     else:
         commands = st.one_of(st.sampled_from([*FT_TELEMETRY, *FT_COMMANDS]), st.integers(0, 255))
         high = st.one_of(st.just(0), st.integers(1, 0x1FFF))
@@ -339,13 +356,13 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
     )
 
 
-@pytest.mark.parametrize("protocol", ["ckesc", "ft"])
+@pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
 @given(data=st.data(), read_back=st.booleans())
 @settings(max_examples=80, deadline=None)
 def test_filters_pass_exactly_our_telemetry(
     protocol: str, data: st.DataObject, read_back: bool
 ) -> None:
-    top = 125 if protocol == "ckesc" else 255
+    top = {"ckesc": 125, "ft": 255, "vesc": 254}[protocol]
     ids = data.draw(st.frozensets(st.integers(1, top), min_size=1, max_size=20), label="ids")
     frames = data.draw(st.lists(frame_ids(protocol, ids), min_size=50, max_size=50))
     filters = telemetry_filters(protocol, ids, read_back)
@@ -386,6 +403,15 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
                 0, ckesc_records.TYPE_RAW_COMMAND_12B, 5
             ),  # a command from another host
         ]
+    elif protocol == "vesc":
+        telemetry = [packet << 8 | vesc for packet in VESC_TELEMETRY for vesc in ids]
+        commands = [packet << 8 | vesc for packet in VESC_COMMANDS for vesc in ids]
+        others = [
+            9 << 8 | 9,  # not our VESC
+            18 << 8 | ids[0],  # a PONG to one of our IDs: not telemetry
+            57 << 8 | ids[0],  # NOTIFY_BOOT: not telemetry
+            5 << 8 | ids[0],  # FILL_RX_BUFFER: VESC Tool's traffic
+        ]
     else:
         telemetry = [ft_records.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
         commands = [ft_records.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
@@ -397,7 +423,7 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
     return telemetry, commands, others
 
 
-@pytest.mark.parametrize("protocol", ["ckesc", "ft"])
+@pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
 @pytest.mark.parametrize("read_back", [False, True])
 def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
     protocol: str, read_back: bool
@@ -438,6 +464,8 @@ def test_ids_no_filter_can_name_and_misused_arguments_are_refused() -> None:
         telemetry_filters("ckesc", [0, 1, 126], False)
     with pytest.raises(ValueRangeError, match=r"FT ESC IDs \[256\] are not in 0\.\.255"):
         telemetry_filters("ft", [255, 256], True)
+    with pytest.raises(ValueRangeError, match=r"VESC IDs \[255\] are not in 0\.\.254"):
+        telemetry_filters("vesc", [254, 255], False)
     config = CanConfig(interface="virtual", channel=f"refused-{next(_channels)}")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
         open_bus(config, 500_000, receive="telemetry")
