@@ -3,7 +3,7 @@
 Run: ``python bench/safety_load.py [--seconds 60] [--loads idle busy2 ...] [--protocol ckesc ft]
 [--repeat 1] [--json FILE]``
 
-For each load preset of ``bridge/sim/load.py`` (all of them unless ``--loads`` names some) and
+For each load preset of ``loadgen/load.py`` (all of them unless ``--loads`` names some) and
 each protocol, the bridge runs through its CLI only (``esc-bridge run``: the passthrough-4
 mixer, a udp_multicast CAN bus on a port of its own, MAVLink on loopback UDP; CKESC
 RawCommand_12b at 400 Hz, or FT current mode at 100 Hz per ESC), so the same bench measures

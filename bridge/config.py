@@ -8,6 +8,10 @@ because a misspelt safety setting that is silently ignored is worse than a refus
 Every key is documented in ``config/README.md``; a test keeps that page and this module in step.
 The keys' validators are in :mod:`bridge.config_checks`, reading a file and laying the command
 line over it in :mod:`bridge.config_file` (the subcommands' one merge: ``bridge.cli._common``).
+The ESC family on the bus checks its own ``[escs]`` keys (:meth:`BridgeConfig.esc_setup`).
+
+A little over 600 lines, one job: most of it is the table of every section's keys, with their
+defaults and documentation, which reads best whole.
 """
 
 from __future__ import annotations
@@ -456,14 +460,11 @@ class BridgeConfig:
 
     @property
     def family(self) -> EscFamily:
-        """The ESC family on the bus (``[output] protocol``)."""
         return registry.family(self.output.protocol)
 
     @property
     def esc_setup(self) -> EscSetup[Any]:
-        """What the family is given of this configuration: its keys and the ESC IDs (sized by
-        :func:`with_esc_count`), as its check returns them (the check passed when the
-        configuration was built)."""
+        """The family's keys and the ESC IDs, as its check (passed already) returns them."""
         return _checked_setup(self)
 
     @property
@@ -545,24 +546,33 @@ def _check_cross_section(config: BridgeConfig) -> None:
                 f"{source}: [mavlink] output_messages: {url!r} is not one of [mavlink] outputs "
                 f"({listed}); expected an output URL written exactly as in outputs"
             )
-    keys, ids = config.escs.keys(config.output.protocol), config.escs.ids
-    for name, values in _per_esc_lists(keys):
-        if values and ids and len(values) != len(ids):
-            raise ConfigError(
-                f"{source}: [escs] {name} has {len(values)} entries but ids has {len(ids)}; "
-                "expected one per ESC"
-            )
+    if ids := config.escs.ids:
+        _per_esc_lists(config, len(ids), f"ids has {len(ids)}", "ESC")
     _checked_setup(config)
 
 
-def _per_esc_lists(keys: Any) -> list[tuple[str, tuple[int, ...]]]:
-    """A family's per-ESC lists (keys made with ``per_esc=True``): (name, value) each."""
-    return [(f.name, getattr(keys, f.name)) for f in fields(keys) if f.metadata["per_esc"]]
+def _per_esc_lists(config: BridgeConfig, n: int, whose: str, each: str) -> dict[str, Any]:
+    """The family's per-ESC lists (keys made with ``per_esc=True``), ``n`` entries each (1..n
+    when not set).
+
+    Raises:
+        ConfigError: a list of another length (``whose`` is ``n`` entries long).
+    """
+    keys, lists = config.escs.keys(config.output.protocol), {}
+    for name in (f.name for f in fields(keys) if f.metadata["per_esc"]):
+        values = getattr(keys, name)
+        if values and len(values) != n:
+            raise ConfigError(
+                f"{config.source}: [escs] {name} has {len(values)} entries but {whose}; "
+                f"expected one per {each}"
+            )
+        lists[name] = values or tuple(range(1, n + 1))
+    return lists
 
 
 def _checked_setup(config: BridgeConfig) -> EscSetup[Any]:
-    """The selected family's check of its keys (only the selected family's keys are checked
-    against the rest; the others' were checked for form)."""
+    """The family's check of its keys: only the selected family's are checked against the
+    rest (the others' for form only)."""
     family = config.family
     setup = EscSetup(config.escs.ids, config.escs.keys(family.name))
     try:
@@ -585,18 +595,11 @@ def with_esc_count(config: BridgeConfig, n_outputs: int) -> BridgeConfig:
             f"{config.source}: [escs] ids has {len(escs.ids)} entries but mixer "
             f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
         )
-    ids = escs.ids or tuple(range(1, n_outputs + 1))
+    whose = f"mixer {config.mixer.name!r} has {n_outputs} outputs"
+    sized = _per_esc_lists(config, n_outputs, whose, "output")
     name = config.output.protocol
-    keys = escs.keys(name)
-    sized = {}
-    for key_name, values in _per_esc_lists(keys):
-        if values and len(values) != n_outputs:
-            raise ConfigError(
-                f"{config.source}: [escs] {key_name} has {len(values)} entries but mixer "
-                f"{config.mixer.name!r} has {n_outputs} outputs; expected one per output"
-            )
-        sized[key_name] = values or tuple(range(1, n_outputs + 1))
-    families = {**escs.families, name: replace(keys, **sized)}
+    families = {**escs.families, name: replace(escs.keys(name), **sized)}
+    ids = escs.ids or tuple(range(1, n_outputs + 1))
     config = replace(config, escs=replace(escs, ids=ids, families=families))
     _checked_setup(config)
     pole_pairs = config.telemetry.pole_pairs

@@ -444,7 +444,7 @@ def test_set_id_only_when_alone_on_the_runners_bus(
             )
         )
         deadline = time.monotonic() + 2.0
-        responses: list[ckesc_records.SetIdResponse] = []
+        responses: list[ckesc_records.SetId] = []
         while time.monotonic() < deadline and not responses:
             msg = test_bus.recv(0.1)
             frame = ckesc_codec.decode(msg) if msg is not None else None

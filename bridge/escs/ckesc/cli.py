@@ -1,12 +1,16 @@
 """``esc-bridge esc COMMAND``: set up CKESC ESCs from the command line (arguments and output);
-``esc spin``, the motor test for both protocols, is in :mod:`bridge.cli.spin`.
+``esc spin``, the motor test for every family, is in :mod:`bridge.cli.spin`.
 
 One row of :data:`COMMANDS` per command: :func:`add_commands` adds its parser to the ``esc``
-group that :mod:`bridge.cli.esc` creates; each parser has the bus flags of
-:func:`add_bus_arguments`, ``--node`` where the command takes one, its own arguments, and a
-handler that runs :class:`~bridge.escs.ckesc.setup.CkescClient` (imported lazily) and prints the
-result, as text or with ``--json`` as one JSON object. Like the rest of :mod:`bridge.cli` this
-module prints.
+group that :mod:`bridge.cli.esc` creates; each parser has the bus flags the CLI hands over
+(:class:`~bridge.escs.tools.BusFlags`), ``--node`` where the command takes one, its own
+arguments, and a handler that runs :class:`~bridge.escs.ckesc.setup.CkescClient` (imported
+lazily) and prints the result, as text or with ``--json`` as one JSON object. Like the rest of
+:mod:`bridge.cli` this module prints.
+
+Longer than 600 lines on purpose: fourteen commands, each a row of the table, a handler and the
+names its arguments take; cut in two (as it once was), every command would be read in two
+places.
 
 Exit status: 0 done; 1 no answer, a refusal, a failed self-test, lost CANTest frames or a bus
 error (one line on stderr); 2 bad arguments, including values outside the protocol's range,

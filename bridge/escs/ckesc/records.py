@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Final, TypeAlias
+from typing import Final, TypeAlias, TypeVar, cast
 
 # --------------------------------------------------------------------------------------------
 # Protocol constants (docs/protocols.md §1.2, §3.1, §3.2, §3.6)
@@ -208,6 +208,38 @@ class ExpandSetCommand(enum.IntEnum):
 
 
 # --------------------------------------------------------------------------------------------
+# Records. One type per frame type; where several types carry the same fields (a service whose
+# response repeats its request, the debug frames, the one-byte option requests), one dataclass
+# of the fields and a type of it for each (:func:`_types`): the codec tells them apart by type.
+
+_Fields = TypeVar("_Fields")
+
+
+def _types(fields: type[_Fields], *names: str) -> tuple[type[_Fields], ...]:
+    """A type of ``fields`` named each of ``names``: the same data, never equal to each other."""
+
+    def named(name: str) -> type[_Fields]:
+        namespace = {"__slots__": (), "__module__": fields.__module__}
+        return cast("type[_Fields]", type(name, (fields,), namespace))
+
+    return tuple(named(name) for name in names)
+
+
+@dataclass(frozen=True, slots=True)
+class OptionRequest:
+    """A request of one option byte (0 unless the seed says otherwise): GET_ESC_ID (20013) from
+    the host, which every ESC answers with its node ID and channel; ESC Information (240); Get
+    Major Configuration (242), whose option the seed says names the ESC type."""
+
+    option: int = 0
+
+
+GetEscIdRequest, EscInfoRequest, MajorConfigRequest = _types(
+    OptionRequest, "GetEscIdRequest", "EscInfoRequest", "MajorConfigRequest"
+)
+
+
+# --------------------------------------------------------------------------------------------
 # Message (broadcast) records
 
 
@@ -244,13 +276,6 @@ class MsgControlAck:
     """MSGControl (20010) from an ESC: the acknowledgement (after 2 ms per node_id % 32)."""
 
     command: MsgControlCommand | int = MsgControlCommand.ACK
-    option: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class GetEscIdRequest:
-    """GET_ESC_ID (20013) from the host: every ESC answers with its node ID and channel."""
-
     option: int = 0
 
 
@@ -312,33 +337,15 @@ class MsgExp1:
 
 @dataclass(frozen=True, slots=True)
 class DebugData:
+    """MSG_EXP2..6 (20054..20058): vendor debug data, a type of it for each."""
+
     data: bytes
     """Six bytes of vendor debug data, kept raw."""
 
 
-@dataclass(frozen=True, slots=True)
-class MsgExp2(DebugData):
-    """MSG_EXP2 (20054): vendor debug data."""
-
-
-@dataclass(frozen=True, slots=True)
-class MsgExp3(DebugData):
-    """MSG_EXP3 (20055): vendor debug data."""
-
-
-@dataclass(frozen=True, slots=True)
-class MsgExp4(DebugData):
-    """MSG_EXP4 (20056): vendor debug data."""
-
-
-@dataclass(frozen=True, slots=True)
-class MsgExp5(DebugData):
-    """MSG_EXP5 (20057): vendor debug data."""
-
-
-@dataclass(frozen=True, slots=True)
-class MsgExp6(DebugData):
-    """MSG_EXP6 (20058): vendor debug data."""
+MsgExp2, MsgExp3, MsgExp4, MsgExp5, MsgExp6 = _types(
+    DebugData, "MsgExp2", "MsgExp3", "MsgExp4", "MsgExp5", "MsgExp6"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -456,41 +463,35 @@ class RawCommand10b:
 
 @dataclass(frozen=True, slots=True)
 class SetId:
+    """Set ID (210). The ESC ignores the destination: only one ESC may be on the bus, and only
+    in its first 120 s after power-up. Saved to flash; the response holds the values set."""
+
     node_id: int
     """1..0x7D."""
     throttle_channel: int
     """The RawCommand channel to follow, 1..20."""
 
 
-@dataclass(frozen=True, slots=True)
-class SetIdRequest(SetId):
-    """Set ID (210). The ESC ignores the destination: only one ESC may be on the bus, and only
-    in its first 120 s after power-up. Saved to flash."""
-
-
-@dataclass(frozen=True, slots=True)
-class SetIdResponse(SetId):
-    """Set ID (210) response: the values set."""
+SetIdRequest, SetIdResponse = _types(SetId, "SetIdRequest", "SetIdResponse")
 
 
 @dataclass(frozen=True, slots=True)
 class SetBaud:
+    """Set Baud (211): first 120 s after power-up only; applies after a power cycle. The
+    response holds the code set."""
+
     baud_code: int
     """0..6, an index into :data:`BAUD_RATES_BPS`."""
 
 
-@dataclass(frozen=True, slots=True)
-class SetBaudRequest(SetBaud):
-    """Set Baud (211): first 120 s after power-up only; applies after a power cycle."""
-
-
-@dataclass(frozen=True, slots=True)
-class SetBaudResponse(SetBaud):
-    """Set Baud (211) response: the code set."""
+SetBaudRequest, SetBaudResponse = _types(SetBaud, "SetBaudRequest", "SetBaudResponse")
 
 
 @dataclass(frozen=True, slots=True)
 class SetLed:
+    """Set LED (212): only while reports are enabled (not paused by MSGControl); the response
+    holds the values set."""
+
     save: bool
     """Save to flash as the default (else lost at power-off)."""
     color: LedColor
@@ -499,33 +500,30 @@ class SetLed:
     """0 (steady), 1, 2 or 5 Hz."""
 
 
-@dataclass(frozen=True, slots=True)
-class SetLedRequest(SetLed):
-    """Set LED (212): only while reports are enabled (not paused by MSGControl)."""
-
-
-@dataclass(frozen=True, slots=True)
-class SetLedResponse(SetLed):
-    """Set LED (212) response: the values set."""
+SetLedRequest, SetLedResponse = _types(SetLed, "SetLedRequest", "SetLedResponse")
 
 
 @dataclass(frozen=True, slots=True)
 class SetRotation:
+    """Set Rotation (213): motor stopped, reports enabled; saved to flash. The response holds
+    the direction now set (also the answer to a query)."""
+
     rotation: Rotation | int
 
 
-@dataclass(frozen=True, slots=True)
-class SetRotationRequest(SetRotation):
-    """Set Rotation (213): motor stopped, reports enabled; saved to flash."""
-
-
-@dataclass(frozen=True, slots=True)
-class SetRotationResponse(SetRotation):
-    """Set Rotation (213) response: the direction now set (also the answer to a query)."""
+SetRotationRequest, SetRotationResponse = _types(
+    SetRotation, "SetRotationRequest", "SetRotationResponse"
+)
 
 
 @dataclass(frozen=True, slots=True)
 class SetFreq:
+    """Set/Get Freq (214): MSG1..3 report intervals, 20..500 ms in 2 ms steps for a write.
+
+    Factory values are 20, 100 and 500 ms; the ESC ignores a write outside the range. The
+    response holds the intervals now in use.
+    """
+
     write: bool
     """True: set the intervals; False: read them (the ESC ignores the values sent)."""
     msg1_interval_ms: int
@@ -533,32 +531,20 @@ class SetFreq:
     msg3_interval_ms: int
 
 
-@dataclass(frozen=True, slots=True)
-class SetFreqRequest(SetFreq):
-    """Set/Get Freq (214): MSG1..3 report intervals, 20..500 ms in 2 ms steps for a write.
-
-    Factory values are 20, 100 and 500 ms; the ESC ignores a write outside the range.
-    """
-
-
-@dataclass(frozen=True, slots=True)
-class SetFreqResponse(SetFreq):
-    """Set/Get Freq (214) response: the intervals now in use."""
+SetFreqRequest, SetFreqResponse = _types(SetFreq, "SetFreqRequest", "SetFreqResponse")
 
 
 @dataclass(frozen=True, slots=True)
 class ThrottleSelect:
+    """Throttle Select (215): at zero throttle only; saved to flash. The response holds the
+    source now set."""
+
     source: ThrottleSource | int
 
 
-@dataclass(frozen=True, slots=True)
-class ThrottleSelectRequest(ThrottleSelect):
-    """Throttle Select (215): at zero throttle only; saved to flash."""
-
-
-@dataclass(frozen=True, slots=True)
-class ThrottleSelectResponse(ThrottleSelect):
-    """Throttle Select (215) response: the source now set."""
+ThrottleSelectRequest, ThrottleSelectResponse = _types(
+    ThrottleSelect, "ThrottleSelectRequest", "ThrottleSelectResponse"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -581,13 +567,6 @@ class ExpandSetRequest:
     command: ExpandSetCommand | int
     part: int
     """The argument; the allowed values depend on the command (seed 4.4.25)."""
-
-
-@dataclass(frozen=True, slots=True)
-class EscInfoRequest:
-    """ESC Information (240) request."""
-
-    option: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -644,13 +623,6 @@ class Maintenance2Response:
 
 
 @dataclass(frozen=True, slots=True)
-class MajorConfigRequest:
-    """Get Major Configuration (242) request; the seed says the option names the ESC type."""
-
-    option: int = 0
-
-
-@dataclass(frozen=True, slots=True)
 class MajorConfigResponse:
     """Get Major Configuration (242) response: the main settings in one frame (seed 4.4.28)."""
 
@@ -672,17 +644,13 @@ CkescMessage: TypeAlias = (
     | CanTestReport
     | MsgControlRequest
     | MsgControlAck
-    | GetEscIdRequest
+    | OptionRequest
     | GetEscIdAnswer
     | Msg1
     | Msg2
     | Msg3
     | MsgExp1
-    | MsgExp2
-    | MsgExp3
-    | MsgExp4
-    | MsgExp5
-    | MsgExp6
+    | DebugData
     | MsgExp7
     | MsgExp8
     | MsgExp9
@@ -692,28 +660,20 @@ CkescMessage: TypeAlias = (
     | RawCommand14b
     | RawCommand12b
     | RawCommand10b
-    | SetIdRequest
-    | SetIdResponse
-    | SetBaudRequest
-    | SetBaudResponse
-    | SetLedRequest
-    | SetLedResponse
-    | SetRotationRequest
-    | SetRotationResponse
-    | SetFreqRequest
-    | SetFreqResponse
-    | ThrottleSelectRequest
-    | ThrottleSelectResponse
+    | SetId
+    | SetBaud
+    | SetLed
+    | SetRotation
+    | SetFreq
+    | ThrottleSelect
     | SelfTestRequest
     | SelfTestResponse
     | ExpandSetRequest
-    | EscInfoRequest
     | EscInfoResponse
     | MaintenanceRequest
     | Maintenance0Response
     | Maintenance1Response
     | Maintenance2Response
-    | MajorConfigRequest
     | MajorConfigResponse
 )
 """Every CKESC payload record."""

@@ -285,7 +285,7 @@ class CkescClient(ServiceLink):
 
     def set_led(
         self, node_id: int, color: records.LedColor, blink_hz: int = 0, *, save: bool = False
-    ) -> records.SetLedResponse:
+    ) -> records.SetLed:
         """Set the LED (colour bits, blink 0/1/2/5 Hz), saved as the default with ``save``.
 
         Raises:
@@ -332,7 +332,7 @@ class CkescClient(ServiceLink):
         msg1_ms: int | None = None,
         msg2_ms: int | None = None,
         msg3_ms: int | None = None,
-    ) -> records.SetFreqResponse:
+    ) -> records.SetFreq:
         """Read the MSG1/2/3 report intervals, or write those given (20..500 ms, even; the
         others are read first and kept); the intervals in use.
 

@@ -30,7 +30,7 @@ from bridge.errors import (
     UnknownTypeError,
     ValueRangeError,
 )
-from bridge.escs.ckesc import codec, records
+from bridge.escs.ckesc import codec, messages, records, services
 from bridge.escs.uavcan_v0 import message_id, parse_id, service_id
 
 # --------------------------------------------------------------------------------------------
@@ -544,7 +544,10 @@ def test_14b_bit_order_matches_dronecan(throttles: list[int], transfer_id: int) 
 
 
 def test_spec_covers_every_record() -> None:
-    assert set(SPEC) == set(typing.get_args(records.CkescMessage))
+    table = {row.record for row in (*messages.MESSAGE_TYPES, *services.SERVICE_TYPES)}
+    assert set(SPEC) == table
+    # Every record type is of one of the layouts CkescMessage names.
+    assert all(issubclass(record, typing.get_args(records.CkescMessage)) for record in table)
     for record, spec_ in SPEC.items():
         for variant in spec_.variants:
             assert list(variant) == [f.name for f in fields(record)], record

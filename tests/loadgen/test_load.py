@@ -1,4 +1,4 @@
-"""The load generators (bridge/sim/load.py): each one really loads the machine, and nothing of
+"""The load generators (loadgen/load.py): each one really loads the machine, and nothing of
 it is left running once its context exits, also after an exception or the caller's death.
 
 Real processes, files and sockets; every test takes a second or two.
