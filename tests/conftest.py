@@ -34,6 +34,7 @@ from bridge.config import SECTIONS, EscsConfig
 from bridge.escs import registry
 from bridge.mavlink import load_dialect
 from bridge.sim.autopilot import PHASES
+from bridge.telemetry.state import EscTable
 
 # Hypothesis fails an example that takes over 200 ms (its deadline) and a test whose examples are
 # slow to generate (too_slow); on a loaded machine (the suite's own workers, CI on shared cores)
@@ -458,3 +459,17 @@ def phase_start(name: str) -> float:
     """When the demo flight's phase called ``name`` begins, in seconds from its start."""
     names = [phase for phase, _ in PHASES]
     return sum(duration for _, duration in PHASES[: names.index(name)])
+
+
+def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
+    """One frame of a one-frame family (CKESC, FT) through its decoder into ``table``, as the
+    CAN reader does: telemetry ingested (True if from one of its ESCs), commands noted."""
+    family = registry.families_of(msg.arbitration_id)[0]
+    decoder = family.decoder()  # one frame is one message for the families fed here
+    frame = decoder.decode(msg)
+    assert frame is not None
+    telemetry = decoder.telemetry(frame)
+    if telemetry is None:
+        table.note_commands(decoder.commands_seen(frame))
+        return False
+    return table.ingest(telemetry, now_ns)

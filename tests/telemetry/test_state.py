@@ -6,6 +6,7 @@ import time
 
 import can
 import pytest
+from conftest import feed
 
 from bridge.escs import registry
 from bridge.escs.ckesc import codec as ckesc_codec
@@ -39,19 +40,6 @@ def host_ck(message: ckesc_records.CkescMessage) -> can.Message:
 
 def ftm(esc_id: int, message: ft_records.FtMessage) -> can.Message:
     return ft_codec.encode(ft_records.FtFrame(esc_id, message))
-
-
-def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
-    """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.families_of(msg.arbitration_id)[0]
-    decoder = family.decoder()  # one frame is one message for the families fed here
-    frame = decoder.decode(msg)
-    assert frame is not None
-    telemetry = decoder.telemetry(frame)
-    if telemetry is None:
-        table.note_commands(decoder.commands_seen(frame))
-        return False
-    return table.ingest(telemetry, now_ns)
 
 
 def test_online_only_within_the_timeout() -> None:

@@ -9,6 +9,7 @@ import time
 
 import can
 import pytest
+from conftest import feed
 
 from bridge.errors import LinkError
 from bridge.escs import registry
@@ -33,19 +34,6 @@ T0 = 10_000 * MS  # an arbitrary monotonic start
 def ck(node: int, message: records.CkescMessage, transfer_id: int = 0) -> can.Message:
     frame = codec.CkescFrame(codec.default_priority(message), node, None, transfer_id, message)
     return codec.encode(frame)
-
-
-def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
-    """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.families_of(msg.arbitration_id)[0]
-    decoder = family.decoder()  # one frame is one message for the families fed here
-    frame = decoder.decode(msg)
-    assert frame is not None
-    telemetry = decoder.telemetry(frame)
-    if telemetry is None:
-        table.note_commands(decoder.commands_seen(frame))
-        return False
-    return table.ingest(telemetry, now_ns)
 
 
 def test_ckesc_messages_fill_every_field() -> None:

@@ -4,6 +4,7 @@ by each motor's pole pairs."""
 from __future__ import annotations
 
 import can
+from conftest import feed
 
 from bridge.escs import registry
 from bridge.escs.ft import codec, records
@@ -15,19 +16,6 @@ T0 = 10_000 * MS  # an arbitrary monotonic start
 
 def ftm(esc_id: int, message: records.FtMessage) -> can.Message:
     return codec.encode(records.FtFrame(esc_id, message))
-
-
-def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
-    """Through the family's codec and telemetry mapping into ``table``, as the reader does."""
-    family = registry.families_of(msg.arbitration_id)[0]
-    decoder = family.decoder()  # one frame is one message for the families fed here
-    frame = decoder.decode(msg)
-    assert frame is not None
-    telemetry = decoder.telemetry(frame)
-    if telemetry is None:
-        table.note_commands(decoder.commands_seen(frame))
-        return False
-    return table.ingest(telemetry, now_ns)
 
 
 def test_ft_frames_signed_rpm_by_pole_pairs() -> None:
