@@ -40,7 +40,8 @@ def frame_of(controller_id: int, message: VescMessage) -> can.Message:
 
 
 def feed(table: EscTable, msg: can.Message, now_ns: int) -> bool:
-    """Through the family's decoder into ``table``, as the CAN reader does."""
+    """Through VESC's decoder into ``table``, as the CAN reader does (conftest.feed takes the
+    first family whose ID space holds a frame: FT's, for a VESC ID)."""
     frame = DECODER.decode(msg)
     assert frame is not None
     telemetry = DECODER.telemetry(frame)
