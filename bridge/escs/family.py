@@ -159,8 +159,9 @@ class EscTelemetry:
 
 @dataclass(frozen=True, slots=True)
 class CommandSeen:
-    """A command read back from the bus, for the ESC at ``node_id`` or, for families that
-    address by throttle channel, the ESC following ``channel``."""
+    """A command a command frame carries (the driver's own frames for the ESC state, a
+    capture's for the plot), for the ESC at ``node_id`` or, for families that address by
+    throttle channel, the ESC following ``channel``."""
 
     value: float
     unit: str
@@ -264,9 +265,9 @@ class EscFamily(Protocol):
         """A decoder for one stream of frames (each reader, capture or plot makes its own)."""
         ...
 
-    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-        """python-can filters passing the telemetry of ``esc_ids`` and, with
-        ``read_back_commands``, the bridge's own commands.
+    def reader_filters(self, esc_ids: Collection[int]) -> list[CanFilter]:
+        """python-can filters passing the telemetry of ``esc_ids`` (the bridge's own commands
+        are not read back: the output loop says what it sent).
 
         Raises:
             bridge.errors.ValueRangeError: an ESC ID the protocol cannot have.

@@ -60,9 +60,9 @@ MULTICAST_GROUP_V6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's I
 CAN_EFF_FLAG = 0x8000_0000  # linux/can.h: the extended-frame flag in a can_id
 
 
-def telemetry_filters(protocol: str, ids: Collection[int], read_back: bool) -> list[CanFilter]:
-    """The family's kernel filters for its ESCs' telemetry (and commands, with ``read_back``)."""
-    return registry.family(protocol).reader_filters(ids, read_back)
+def telemetry_filters(protocol: str, ids: Collection[int]) -> list[CanFilter]:
+    """The family's kernel filters for its ESCs' telemetry."""
+    return registry.family(protocol).reader_filters(ids)
 
 
 # The ID layouts, from docs/protocols.md §2.1, §3.2 and §4.2 rather than from bridge/can_io.py.
@@ -76,27 +76,22 @@ VESC_COMMANDS = (0, 1, 2, 3, 10)  # SET_DUTY, SET_CURRENT, SET_CURRENT_BRAKE, SE
 _channels = itertools.count()
 
 
-def is_ours(
-    protocol: str, ids: Collection[int], read_back: bool, can_id: int, extended: bool
-) -> bool:
-    """Whether a frame is telemetry from one of ``ids`` (or, with ``read_back``, a command the
-    ESC state reads back), by its ID alone."""
+def is_ours(protocol: str, ids: Collection[int], can_id: int, extended: bool) -> bool:
+    """Whether a frame is telemetry from one of ``ids``, by its ID alone."""
     if not extended:
         return False
     if protocol == "ckesc":
         if can_id & 0x80:  # a service frame
             return False
         type_id, node = can_id >> 8 & 0xFFFF, can_id & 0x7F
-        return (type_id in CKESC_TELEMETRY and node in ids) or (
-            read_back and type_id in CKESC_COMMANDS and node == 0
-        )
+        return type_id in CKESC_TELEMETRY and node in ids
     if can_id >> 16:
         return False
     if protocol == "vesc":
         packet, vesc = can_id >> 8, can_id & 0xFF
-        return vesc in ids and (packet in VESC_TELEMETRY or (read_back and packet in VESC_COMMANDS))
+        return vesc in ids and packet in VESC_TELEMETRY
     esc, command = can_id >> 8, can_id & 0xFF
-    return esc in ids and (command in FT_TELEMETRY or (read_back and command in FT_COMMANDS))
+    return esc in ids and command in FT_TELEMETRY
 
 
 def kernel_matches(filters: list[CanFilter], can_id: int, extended: bool) -> bool:
@@ -217,7 +212,7 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
     telemetry from our IDs) and random IDs; every one checked against the filters."""
     rng = random.Random(seed)
     probe = can.Bus(interface="virtual", channel=f"junk-{next(_channels)}")
-    probe.set_filters(telemetry_filters(protocol, ids, False))
+    probe.set_filters(telemetry_filters(protocol, ids))
     ours = sorted(ids)
     frames: list[can.Message] = []
     while len(frames) < n:
@@ -263,25 +258,22 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
 
 
 @pytest.mark.parametrize(
-    ("protocol", "ids", "read_back", "count"),
+    ("protocol", "ids", "count"),
     [
-        ("ckesc", [1, 2, 3, 4], False, 12),  # 4 type blocks (20050-1, -55, -63, 20064) x 3
-        ("ckesc", [1, 2, 3, 4], True, 14),  # + 2 for RawCommand 20100-20101, 20102 from node 0
-        ("ckesc", [1, 2, 3, 4, 5, 6], False, 12),  # {1,5}, {2,3}, {4,6}: still 3 node blocks
-        ("ckesc", [7], False, 4),
-        ("ft", [1, 2, 3, 4], False, 6),  # {0x0B}, {0x0C, 0x0D} x 3
-        ("ft", [1, 2, 3, 4], True, 18),  # 19 command IDs in 6 blocks
-        ("ft", [0, 1, 2, 3, 4, 5, 6, 7], False, 2),
-        ("vesc", [1, 2, 3, 4], False, 15),  # {9}, {14, 15}, {16}, {27}, {58} x 3
-        ("vesc", [1, 2, 3, 4], True, 21),  # with commands 0..3 and 10: 11 packets in 7 blocks
-        ("vesc", [0, 1, 2, 3, 4, 5, 6, 7], False, 5),
+        ("ckesc", [1, 2, 3, 4], 12),  # 4 type blocks (20050-1, -55, -63, 20064) x 3
+        ("ckesc", [1, 2, 3, 4, 5, 6], 12),  # {1,5}, {2,3}, {4,6}: still 3 node blocks
+        ("ckesc", [7], 4),
+        ("ft", [1, 2, 3, 4], 6),  # {0x0B}, {0x0C, 0x0D} x 3
+        ("ft", [0, 1, 2, 3, 4, 5, 6, 7], 2),
+        ("vesc", [1, 2, 3, 4], 15),  # {9}, {14, 15}, {16}, {27}, {58} x 3
+        ("vesc", [0, 1, 2, 3, 4, 5, 6, 7], 5),
     ],
 )
-def test_filter_counts(protocol: str, ids: list[int], read_back: bool, count: int) -> None:
-    filters = telemetry_filters(protocol, ids, read_back)
+def test_filter_counts(protocol: str, ids: list[int], count: int) -> None:
+    filters = telemetry_filters(protocol, ids)
     assert len(filters) == count
     assert all(f["extended"] is True for f in filters)
-    assert telemetry_filters(protocol, [], False) == []
+    assert telemetry_filters(protocol, []) == []
 
 
 def fewest_blocks(values: frozenset[int], width: int) -> int:
@@ -314,7 +306,7 @@ def fewest_blocks(values: frozenset[int], width: int) -> int:
 @settings(max_examples=60, deadline=None)
 def test_filters_are_as_few_as_the_ids_allow(ids: frozenset[int]) -> None:
     # FT telemetry is 2 command blocks; the ESC IDs (all below 16 here) take their fewest.
-    assert len(telemetry_filters("ft", ids, False)) == 2 * fewest_blocks(ids, 4)
+    assert len(telemetry_filters("ft", ids)) == 2 * fewest_blocks(ids, 4)
 
 
 def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int, bool]]:
@@ -357,15 +349,13 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
 
 
 @pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
-@given(data=st.data(), read_back=st.booleans())
+@given(data=st.data())
 @settings(max_examples=80, deadline=None)
-def test_filters_pass_exactly_our_telemetry(
-    protocol: str, data: st.DataObject, read_back: bool
-) -> None:
+def test_filters_pass_exactly_our_telemetry(protocol: str, data: st.DataObject) -> None:
     top = {"ckesc": 125, "ft": 255, "vesc": 254}[protocol]
     ids = data.draw(st.frozensets(st.integers(1, top), min_size=1, max_size=20), label="ids")
     frames = data.draw(st.lists(frame_ids(protocol, ids), min_size=50, max_size=50))
-    filters = telemetry_filters(protocol, ids, read_back)
+    filters = telemetry_filters(protocol, ids)
     virtual = open_bus(
         CanConfig(interface="virtual", channel=f"filters-{next(_channels)}"),
         500_000,
@@ -377,7 +367,7 @@ def test_filters_pass_exactly_our_telemetry(
         assert virtual.filters == filters and multicast.filters == filters
         for can_id, extended in frames:
             msg = can.Message(arbitration_id=can_id, is_extended_id=extended)
-            want = is_ours(protocol, ids, read_back, can_id, extended)
+            want = is_ours(protocol, ids, can_id, extended)
             assert virtual._matches_filters(msg) == want, (hex(can_id), extended)
             assert multicast._matches_filters(msg) == want, (hex(can_id), extended)
             assert kernel_matches(filters, can_id, extended) == want, (hex(can_id), extended)
@@ -387,7 +377,7 @@ def test_filters_pass_exactly_our_telemetry(
 
 
 def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[int]]:
-    """(every telemetry ID from ``ids``, every command ID the state reads back, other IDs)."""
+    """(every telemetry ID from ``ids``, every command ID to or from them, other IDs)."""
     if protocol == "ckesc":
         telemetry = [uavcan_v0.message_id(31, t, node) for t in CKESC_TELEMETRY for node in ids]
         commands = [uavcan_v0.message_id(0, t, 0) for t in CKESC_COMMANDS]
@@ -424,14 +414,11 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
 
 
 @pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
-@pytest.mark.parametrize("read_back", [False, True])
-def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
-    protocol: str, read_back: bool
-) -> None:
+def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(protocol: str) -> None:
     ids = [1, 2, 3, 4]
     telemetry, commands, others = every_id(protocol, ids)
     config = CanConfig(interface="virtual", channel=f"every-{next(_channels)}")
-    filters = telemetry_filters(protocol, ids, read_back)
+    filters = telemetry_filters(protocol, ids)
     receiver = open_bus(config, 500_000, receive="telemetry", filters=filters)
     sender = open_bus(config, 500_000)
     try:
@@ -444,33 +431,31 @@ def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(
         got = []
         while (msg := receiver.recv(0.05)) is not None:
             got.append(msg.arbitration_id)
-        assert got == telemetry + (commands if read_back else [])
+        assert got == telemetry
     finally:
         receiver.shutdown()
         sender.shutdown()
 
 
 def test_reader_filters_pass_everything_to_a_recording() -> None:
-    assert (
-        reader_filters(registry.family("ft"), [1], recording=True, read_back_commands=False) is None
-    )
-    assert reader_filters(registry.family("ft"), [1], recording=False, read_back_commands=True) == (
-        telemetry_filters("ft", [1], True)
+    assert reader_filters(registry.family("ft"), [1], recording=True) is None
+    assert reader_filters(registry.family("ft"), [1], recording=False) == (
+        telemetry_filters("ft", [1])
     )
 
 
 def test_ids_no_filter_can_name_and_misused_arguments_are_refused() -> None:
     with pytest.raises(ValueRangeError, match=r"CKESC node IDs \[0, 126\] are not in 1\.\.125"):
-        telemetry_filters("ckesc", [0, 1, 126], False)
+        telemetry_filters("ckesc", [0, 1, 126])
     with pytest.raises(ValueRangeError, match=r"FT ESC IDs \[256\] are not in 0\.\.255"):
-        telemetry_filters("ft", [255, 256], True)
+        telemetry_filters("ft", [255, 256])
     with pytest.raises(ValueRangeError, match=r"VESC IDs \[255\] are not in 0\.\.254"):
-        telemetry_filters("vesc", [254, 255], False)
+        telemetry_filters("vesc", [254, 255])
     config = CanConfig(interface="virtual", channel=f"refused-{next(_channels)}")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
         open_bus(config, 500_000, receive="telemetry")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
-        open_bus(config, 500_000, filters=telemetry_filters("ft", [1], False))
+        open_bus(config, 500_000, filters=telemetry_filters("ft", [1]))
     bus = open_bus(config, 500_000)
     try:
         with pytest.raises(ValueError, match="no filters"):
@@ -529,7 +514,7 @@ def test_a_held_off_reader_counts_every_frame_the_kernel_dropped(floods: list[Fl
     port = free_port()
     config = udp_config(port)
     ids = [1, 2]
-    filters = telemetry_filters("ft", ids, False)
+    filters = telemetry_filters("ft", ids)
     bus = open_bus(config, 500_000, receive="telemetry", filters=filters)
     granted = enlarge_receive_buffer(bus, 4096)
     assert granted is not None and granted <= 16384  # a few datagrams' worth
@@ -636,7 +621,7 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
         esc.motor.set_duty(duty)  # spinning without commands: the sim's handle never reads
     sim = Simulator(open_bus(config.can, 500_000, receive="none"), escs, own_bus=True)
     plain = open_bus(config.can, 500_000)  # a handle that is never read, for comparison
-    fanout = make_fanout(config, read_back_commands=False)
+    fanout = make_fanout(config)
     flood = Flood(port, junk("ft", ids, 1024, seed=7), seconds=FLOOD_S)
     floods.append(flood)
     try:
@@ -708,16 +693,14 @@ def test_under_a_flood_the_reader_keeps_telemetry_current_and_never_decodes_junk
 # -- the fan-out's own handle ----------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("recording", "read_back"), [(False, False), (False, True), (True, False)])
-def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_back: bool) -> None:
+@pytest.mark.parametrize("recording", [False, True])
+def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool) -> None:
     port = free_port()
     config = bridge_config(port, "ckesc", [1, 2], learn_ids=True)
     # The ESCs answer GET_ESC_ID with node IDs 9 and 12 for throttle channels 1 and 2.
     sim = Simulator(open_bus(config.can, 500_000), make_escs("ckesc", 2, [9, 12]), own_bus=True)
     recorded: list[can.Message] = []
-    fanout = make_fanout(
-        config, recorder=recorded.append if recording else None, read_back_commands=read_back
-    )
+    fanout = make_fanout(config, recorder=recorded.append if recording else None)
     sender = open_bus(config.can, 500_000)
     try:
         sim.start()
@@ -739,14 +722,16 @@ def test_fanout_filters_by_learnt_ids_unless_recording(recording: bool, read_bac
         before = reader.stats.frames - reader.stats.telemetry
         for msg in others * 5:
             sender.send(msg)
-        wanted = 15 if recording else 5 if read_back else 0
+        wanted = 15 if recording else 0
         assert wait_until(lambda: reader.stats.frames - reader.stats.telemetry >= wanted, 3.0)
         time.sleep(0.3)
         stats = reader.stats
         assert stats.frames - stats.telemetry - before == wanted
         assert stats.malformed == 0
         commands = [s.command for s in fanout.table.snapshot(time.monotonic_ns())]
-        assert commands == ([100.0, 200.0] if read_back or recording else [None, None])
+        # Read or not, the bridge's own commands are never taken from the bus (the loop says
+        # what it sent): a command on the bus from anyone else leaves the state alone.
+        assert commands == [None, None]
         if recording:
             assert sum(m.arbitration_id == 0x1ABCDE05 for m in recorded) == 5
         assert wait_until(lambda: stats.kernel_drops is not None, 2.0)

@@ -16,10 +16,6 @@ from bridge.escs.filters import check_ids, fewest_blocks
 TELEMETRY_TYPES: Final = frozenset(range(records.TYPE_MSG1, records.TYPE_MSG_EXP12 + 1))
 """MSG1..MSG_EXP12 (20050..20064): what :class:`~bridge.telemetry.state.EscTable` takes from an
 ESC. CANTest reports, MSGControl acks, GET_ESC_ID answers and service responses are not."""
-COMMAND_TYPES: Final = frozenset(
-    {records.TYPE_RAW_COMMAND_14B, records.TYPE_RAW_COMMAND_12B, records.TYPE_RAW_COMMAND_10B}
-)
-"""RawCommand_14b/12b/10b, sent by the host (node 0): the commands the ESC state reads back."""
 
 THROTTLE_FRAME_BYTES: Final = 8  # 12b, 14b (7 + tail) and 10b all fill the frame
 TELEMETRY_BYTES: Final = (7, 6, 8)  # MSG1, MSG2, MSG3 with their tail bytes
@@ -29,10 +25,10 @@ _NODE_BITS = 7  # bits 6..0
 _SERVICE_FLAG = 0x80  # bit 7: 0 for a message (broadcast) frame
 
 
-def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
+def reader_filters(esc_ids: Collection[int]) -> list[CanFilter]:
     """python-can ``can_filters`` that pass exactly the telemetry frames (MSG1..MSG_EXP12) of
-    the nodes ``esc_ids`` and, with ``read_back_commands``, the RawCommand frames from node 0.
-    Nothing else: no 11-bit frame, no other node's frames, no service traffic.
+    the nodes ``esc_ids``. Nothing else: no 11-bit frame, no other node's frames, no commands,
+    no service traffic.
 
     Each ID field (message type, source node) is split into the fewest aligned blocks that
     cover exactly its values, one filter per pair of blocks: a quad with node IDs 1..4 needs
@@ -44,21 +40,14 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
     """
     ids = frozenset(esc_ids)
     check_ids(ids, range(1, uavcan_v0.MAX_NODE_ID + 1), "CKESC node")
-    filters = _filters(TELEMETRY_TYPES, ids)
-    if read_back_commands:
-        filters += _filters(COMMAND_TYPES, frozenset({records.HOST_NODE_ID}))
-    return filters
-
-
-def _filters(types: frozenset[int], nodes: frozenset[int]) -> list[CanFilter]:
     return [
         {
             "can_id": type_id << 8 | node,
             "can_mask": type_mask << 8 | _SERVICE_FLAG | node_mask,
             "extended": True,
         }
-        for node, node_mask in fewest_blocks(nodes, _NODE_BITS)
-        for type_id, type_mask in fewest_blocks(types, _TYPE_BITS)
+        for node, node_mask in fewest_blocks(ids, _NODE_BITS)
+        for type_id, type_mask in fewest_blocks(TELEMETRY_TYPES, _TYPE_BITS)
     ]
 
 

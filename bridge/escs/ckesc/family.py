@@ -41,8 +41,8 @@ class CkescFamily:
     def decoder(self) -> CkescDecoder:
         return _DECODER
 
-    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-        return bus.reader_filters(esc_ids, read_back_commands)
+    def reader_filters(self, esc_ids: Collection[int]) -> list[CanFilter]:
+        return bus.reader_filters(esc_ids)
 
     def check(self, setup: EscSetup[CkescKeys], rate_hz: int) -> EscSetup[CkescKeys]:
         keys = setup.keys

@@ -3,7 +3,7 @@
 :class:`CkescClient` is the engine of ``esc-bridge esc``: it sends one request at a time from
 the host and reads the bus until the matching answer arrives or its timeout passes, then checks
 the answer. The wire is docs/protocols.md §3.5, §3.6 and every frame goes through the production
-codec (:mod:`bridge.escs.ckesc`), so values outside the protocol's range raise
+codec (:mod:`bridge.escs.ckesc.codec`), so values outside the protocol's range raise
 :class:`~bridge.errors.ValueRangeError` before anything is sent.
 
 A service response matches a request when it has the request's service type, is addressed to

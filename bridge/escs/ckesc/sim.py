@@ -5,7 +5,7 @@ handlers, services and report streams share its state (flash, clock, pending ans
 into pieces it would read worse. Its constants and helpers come first.
 
 Frames in (:meth:`SimCkesc.handle`), time in (:meth:`SimCkesc.poll`), frames out; no bus, no
-thread, no sleeping. Every frame goes through the production codec (:mod:`bridge.escs.ckesc`),
+thread, no sleeping. Every frame goes through the production codec (:mod:`bridge.escs.ckesc.codec`),
 so the simulator and the bridge read the wire alike.
 
 What it does, in the spec's words where the spec has words:

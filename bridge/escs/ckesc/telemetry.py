@@ -1,5 +1,5 @@
 """The CKESC reader (:class:`CkescDecoder`): frames to records, and records to neutral telemetry
-(:class:`~bridge.escs.family.EscTelemetry`) and commands read back
+(:class:`~bridge.escs.family.EscTelemetry`) and the commands a command frame carries
 (:class:`~bridge.escs.family.CommandSeen`), the family's side of the ESC state.
 
 Failure flags follow MAVLink's ESC_FAILURE_FLAGS; a MSG1 status word maps through

@@ -14,7 +14,6 @@ from bridge.escs.dronecan.wire import (
     STATUS_BYTES,
     TYPE_ESC_STATUS,
     TYPE_NODE_STATUS,
-    TYPE_RAW_COMMAND,
     raw_command_bytes,
 )
 from bridge.escs.family import BusFigures, frame_bits
@@ -29,17 +28,16 @@ def _type_filter(type_id: int) -> CanFilter:
     return {"can_id": type_id << 8, "can_mask": _TYPE_MASK, "extended": True}
 
 
-def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-    """python-can ``can_filters`` passing every node's esc.Status and NodeStatus and, with
-    ``read_back_commands``, RawCommand. An ESC's index is in its Status's payload and its node
-    ID is not known in advance, so the kernel cannot pick our ESCs out: the decoder does.
+def reader_filters(esc_ids: Collection[int]) -> list[CanFilter]:
+    """python-can ``can_filters`` passing every node's esc.Status and NodeStatus. An ESC's
+    index is in its Status's payload and its node ID is not known in advance, so the kernel
+    cannot pick our ESCs out: the decoder does.
 
     Raises:
         ValueRangeError: an ESC number outside 1..20.
     """
     check_ids(esc_ids, ESC_NUMBERS, "DroneCAN ESC")
-    types = [TYPE_ESC_STATUS, TYPE_NODE_STATUS] + ([TYPE_RAW_COMMAND] if read_back_commands else [])
-    return [_type_filter(type_id) for type_id in types]
+    return [_type_filter(type_id) for type_id in (TYPE_ESC_STATUS, TYPE_NODE_STATUS)]
 
 
 def _bits(payload_bytes: int) -> int:

@@ -47,8 +47,8 @@ class DronecanFamily:
 
         return DronecanDecoder()
 
-    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-        return bus.reader_filters(esc_ids, read_back_commands)
+    def reader_filters(self, esc_ids: Collection[int]) -> list[CanFilter]:
+        return bus.reader_filters(esc_ids)
 
     def check(self, setup: EscSetup[DronecanKeys], rate_hz: int) -> EscSetup[DronecanKeys]:
         ids = setup.ids

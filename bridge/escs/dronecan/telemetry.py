@@ -1,6 +1,6 @@
 """DroneCAN transfers as neutral telemetry (:class:`~bridge.escs.family.EscTelemetry`) and
-commands read back (:class:`~bridge.escs.family.CommandSeen`): the family's side of the ESC
-state. An ESC is known by its ESC number, ``esc_index + 1`` (``[escs] ids``).
+the commands a command frame carries (:class:`~bridge.escs.family.CommandSeen`): the family's
+side of the ESC state. An ESC is known by its ESC number, ``esc_index + 1`` (``[escs] ids``).
 
 - esc.Status: rpm (signed), voltage, current, the ESC's temperature as its MOSFET temperature
   (kelvin to °C, as ArduPilot's ``handle_ESC_status``), power rating / 100 as its output (with

@@ -14,7 +14,6 @@ from bridge.escs.ft import records
 from bridge.escs.ft.driver import ft_command_dlc
 
 TELEMETRY_COMMANDS: Final = frozenset(records.Telemetry)
-COMMANDS: Final = frozenset(records.Command)
 TELEMETRY_FRAMES: Final = 3  # REALTIME_DATA_0, 1 and 2, 8 bytes each
 TELEMETRY_BYTES: Final = 8
 
@@ -22,9 +21,9 @@ _FIELD_BITS = 8  # ESC ID in bits 15..8, command in bits 7..0
 _ZERO_BITS = 0x1FFF_0000  # bits 28..16 are zero in every FT ID
 
 
-def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
+def reader_filters(esc_ids: Collection[int]) -> list[CanFilter]:
     """python-can ``can_filters`` that pass exactly the real-time data frames of the ESCs
-    ``esc_ids`` and, with ``read_back_commands``, the commands to them. Nothing else.
+    ``esc_ids``. Nothing else.
 
     Each ID field (command, ESC ID) is split into the fewest aligned blocks that cover exactly
     its values, one filter per pair of blocks: a quad with ESC IDs 1..4 needs 6.
@@ -34,7 +33,6 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
     """
     ids = frozenset(esc_ids)
     check_ids(ids, range(records.ESC_ID_MIN, records.ESC_ID_MAX + 1), "FT ESC")
-    commands = TELEMETRY_COMMANDS | (COMMANDS if read_back_commands else frozenset())
     return [
         {
             "can_id": esc_id << 8 | command,
@@ -42,7 +40,7 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
             "extended": True,
         }
         for esc_id, esc_mask in fewest_blocks(ids, _FIELD_BITS)
-        for command, command_mask in fewest_blocks(commands, _FIELD_BITS)
+        for command, command_mask in fewest_blocks(TELEMETRY_COMMANDS, _FIELD_BITS)
     ]
 
 

@@ -44,8 +44,8 @@ class FtFamily:
     def decoder(self) -> FtDecoder:
         return _DECODER
 
-    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-        return bus.reader_filters(esc_ids, read_back_commands)
+    def reader_filters(self, esc_ids: Collection[int]) -> list[CanFilter]:
+        return bus.reader_filters(esc_ids)
 
     def check(self, setup: EscSetup[FtKeys], rate_hz: int) -> EscSetup[FtKeys]:
         period_ms = 1000 / rate_hz

@@ -2,7 +2,7 @@
 
 It obeys every FT command addressed to its ESC ID, with or without CRC, and sends the three
 real-time telemetry frames every 10 ms while a command is in force. Frames go through the
-production codec (:mod:`bridge.escs.ft`), so the simulator and the bridge read the wire alike.
+production codec (:mod:`bridge.escs.ft.codec`), so the simulator and the bridge read the wire alike.
 
 What each command does to the motor (:class:`~bridge.sim.motor.Motor`):
 

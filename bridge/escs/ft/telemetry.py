@@ -1,5 +1,5 @@
 """The FT reader (:class:`FtDecoder`): frames to records, and records to neutral telemetry
-(:class:`~bridge.escs.family.EscTelemetry`) and commands read back
+(:class:`~bridge.escs.family.EscTelemetry`) and the commands a command frame carries
 (:class:`~bridge.escs.family.CommandSeen`), the family's side of the ESC state. FT reports no
 faults of its own; the bridge's limits raise its failure flags."""
 

@@ -10,7 +10,7 @@ from can.typechecking import CanFilter
 
 from bridge.escs.family import BusFigures, frame_bits
 from bridge.escs.filters import check_ids, fewest_blocks
-from bridge.escs.vesc.records import COMMAND_DLC, COMMANDS, STATUS_DLC, STATUS_PACKETS
+from bridge.escs.vesc.records import COMMAND_DLC, STATUS_DLC, STATUS_PACKETS
 
 STATUS_FRAMES: Final = 5
 """STATUS 1-5, what docs/escs.md asks to turn on; each at ``vesc_status_hz``."""
@@ -21,10 +21,9 @@ _FIELD_BITS = 8  # packet in bits 15..8, controller ID in bits 7..0
 _ZERO_BITS = 0x1FFF_0000  # bits 28..16 are zero in every VESC ID
 
 
-def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-    """python-can ``can_filters`` that pass exactly the status frames of the VESCs ``esc_ids``
-    and, with ``read_back_commands``, the commands to them. Nothing else: not PONG, NOTIFY_BOOT
-    or VESC Tool's traffic.
+def reader_filters(esc_ids: Collection[int]) -> list[CanFilter]:
+    """python-can ``can_filters`` that pass exactly the status frames of the VESCs ``esc_ids``.
+    Nothing else: not the commands, PONG, NOTIFY_BOOT or VESC Tool's traffic.
 
     Each ID field (packet, controller ID) is split into the fewest aligned blocks that cover
     exactly its values, one filter per pair of blocks.
@@ -34,14 +33,13 @@ def reader_filters(esc_ids: Collection[int], read_back_commands: bool) -> list[C
     """
     ids = frozenset(esc_ids)
     check_ids(ids, ESC_IDS, "VESC")
-    packets = STATUS_PACKETS | (COMMANDS if read_back_commands else frozenset())
     return [
         {
             "can_id": packet << 8 | controller_id,
             "can_mask": _ZERO_BITS | packet_mask << 8 | controller_mask,
             "extended": True,
         }
-        for packet, packet_mask in fewest_blocks(frozenset(packets), _FIELD_BITS)
+        for packet, packet_mask in fewest_blocks(STATUS_PACKETS, _FIELD_BITS)
         for controller_id, controller_mask in fewest_blocks(ids, _FIELD_BITS)
     ]
 

@@ -46,8 +46,8 @@ class VescFamily:
     def decoder(self) -> VescDecoder:
         return _DECODER
 
-    def reader_filters(self, esc_ids: Collection[int], read_back_commands: bool) -> list[CanFilter]:
-        return bus.reader_filters(esc_ids, read_back_commands)
+    def reader_filters(self, esc_ids: Collection[int]) -> list[CanFilter]:
+        return bus.reader_filters(esc_ids)
 
     def check(self, setup: EscSetup[VescKeys], rate_hz: int) -> EscSetup[VescKeys]:
         period_ms = 1000 / rate_hz

@@ -1,5 +1,5 @@
-"""VESC frames as neutral telemetry (:class:`~bridge.escs.family.EscTelemetry`) and commands read
-back (:class:`~bridge.escs.family.CommandSeen`): the family's side of the ESC state
+"""VESC frames as neutral telemetry (:class:`~bridge.escs.family.EscTelemetry`) and the commands a
+command frame carries (:class:`~bridge.escs.family.CommandSeen`): the family's side of the ESC state
 (docs/protocols.md §6.5). VESC reports no faults over CAN; the bridge's limits raise its
 failure flags.
 

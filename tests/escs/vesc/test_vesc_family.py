@@ -12,7 +12,7 @@ from bridge.errors import ConfigError, ValueRangeError
 from bridge.escs.family import EscSetup, frame_bits
 from bridge.escs.vesc.family import VescFamily
 from bridge.escs.vesc.keys import VescKeys
-from bridge.escs.vesc.records import COMMANDS, STATUS_PACKETS
+from bridge.escs.vesc.records import STATUS_PACKETS
 
 FAMILY = VescFamily()
 
@@ -37,24 +37,22 @@ def test_id_space() -> None:
     assert (FAMILY.name, FAMILY.title, FAMILY.default_bitrate) == ("vesc", "VESC", 500_000)
 
 
-@pytest.mark.parametrize("read_back", [False, True])
-def test_filters_pass_exactly_our_status_frames(read_back: bool) -> None:
+def test_filters_pass_exactly_our_status_frames() -> None:
     ids = [1, 2, 3, 4, 23]
-    filters = FAMILY.reader_filters(ids, read_back)
+    filters = FAMILY.reader_filters(ids)
     assert all(f["extended"] for f in filters)
-    packets = STATUS_PACKETS | (COMMANDS if read_back else frozenset())
-    assert passed(filters) == {p << 8 | i for p in packets for i in ids}  # type: ignore[arg-type]
+    assert passed(filters) == {p << 8 | i for p in STATUS_PACKETS for i in ids}  # type: ignore[arg-type]
 
 
 def test_filters_are_few() -> None:
     # STATUS 9, 14, 15, 16, 27, 58: {9}, {14, 15}, {16}, {27}, {58}; IDs 1..4: {1}, {2, 3}, {4}.
-    assert len(FAMILY.reader_filters([1, 2, 3, 4], False)) == 15
-    assert len(FAMILY.reader_filters(range(0, 8), False)) == 5
+    assert len(FAMILY.reader_filters([1, 2, 3, 4])) == 15
+    assert len(FAMILY.reader_filters(range(0, 8))) == 5
 
 
 def test_filters_refuse_impossible_ids() -> None:
     with pytest.raises(ValueRangeError, match=r"VESC IDs \[255\]"):
-        FAMILY.reader_filters([1, 255], False)
+        FAMILY.reader_filters([1, 255])
 
 
 def test_bus_figures() -> None:

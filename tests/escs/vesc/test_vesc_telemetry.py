@@ -83,7 +83,7 @@ def test_the_mapping_per_frame() -> None:
         assert DECODER.telemetry(VescFrame(5, message)) is None
 
 
-def test_commands_read_back() -> None:
+def test_commands_a_command_frame_carries() -> None:
     expected: dict[VescMessage, CommandSeen] = {
         SetDuty(0.5): CommandSeen(0.5, "duty", node_id=7),
         SetCurrent(-2.5): CommandSeen(-2.5, "current_a", node_id=7),
