@@ -28,6 +28,8 @@ from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import wire
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
+from bridge.escs.vesc import codec as vesc_codec
+from bridge.escs.vesc import records as vesc_records
 
 BUS_SATURATION_FRAMES_PER_S = 6_250
 TARGET_FRAMES_PER_S = 200_000
@@ -153,6 +155,29 @@ def _ckesc_telemetry(frames: int) -> list[can.Message]:
     return out
 
 
+def _vesc_encode_duty(frames: int) -> Callable[[], int]:
+    values = [(i % 1000) / 1000 for i in range(frames)]
+
+    def run() -> int:
+        for i, value in enumerate(values):
+            vesc_codec.encode_command(1 + i % 8, vesc_records.Packet.SET_DUTY, value)
+        return len(values)
+
+    return run
+
+
+def _vesc_telemetry(frames: int) -> list[can.Message]:
+    messages: list[vesc_records.VescMessage] = [
+        vesc_records.Status(erpm=84_000, motor_current_a=12.5, duty=0.55),
+        vesc_records.Status4(45.5, 60.2, 10.2, 0.0),
+        vesc_records.Status5(tachometer=123_456, input_voltage_v=25.2),
+    ]
+    return [
+        vesc_codec.encode(vesc_records.VescFrame(1 + i % 20, messages[i % 3]))
+        for i in range(frames)
+    ]
+
+
 def _ft_telemetry(frames: int) -> list[can.Message]:
     messages: list[ft_records.FtMessage] = [
         ft_records.RealtimeData0(motor_current_a=12.5, battery_current_a=10.25),
@@ -196,6 +221,7 @@ WORKLOADS = [
         TARGET_FRAMES_PER_S,
         _ft_encode(ft_records.Command.SET_DUTY_GEAR, 1.0),
     ),
+    Workload("vesc encode SET_DUTY", TARGET_FRAMES_PER_S, _vesc_encode_duty),
     Workload(
         f"dronecan encode RawCommand x{DRONECAN_ESCS}",
         TARGET_FRAMES_PER_S,
@@ -211,6 +237,11 @@ WORKLOADS = [
         "ft decode REALTIME_DATA_0/1/2",
         TARGET_FRAMES_PER_S,
         _decoder(_ft_telemetry, ft_codec.decode),
+    ),
+    Workload(
+        "vesc decode STATUS/4/5",
+        TARGET_FRAMES_PER_S,
+        _decoder(_vesc_telemetry, vesc_codec.decode),
     ),
 ]
 

@@ -191,12 +191,12 @@ def test_no_family_imports_another() -> None:
 
 def test_every_family_folder_is_seen() -> None:
     families = {family_of(m) for m in MODULES} - {None}
-    assert {"ckesc", "ft", "dronecan"} <= families
+    assert {"ckesc", "ft", "dronecan", "vesc"} <= families
     assert family_of("bridge.escs.uavcan_v0") is None
     assert family_of("bridge.escs.family") is None
 
 
-VENDOR = re.compile(r"ckesc|flipsky|dronecan|\bft(_\w+)?\b", re.IGNORECASE)
+VENDOR = re.compile(r"ckesc|flipsky|dronecan|vesc|\bft(_\w+)?\b", re.IGNORECASE)
 
 
 HELP_KEYWORDS = {"help", "description", "epilog"}

@@ -21,6 +21,8 @@ from bridge.escs.ckesc import codec as ckesc_codec
 from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
+from bridge.escs.vesc import codec as vesc_codec
+from bridge.escs.vesc import records as vesc_records
 from bridge.mavlink import load_dialect
 from bridge.telemetry.payload import HealthPayload
 
@@ -213,6 +215,46 @@ def test_pwm_on_ft_in_duty_mode_sends_duty_to_one_esc_and_safe_current_to_the_re
     others = {c for _, c in commands if c[0] != 12}
     assert others == {(11, "current", 0.0), (13, "current", 0.0), (14, "current", 0.0)}
     after = {c for m in observer.since(first + 0.8) if (c := ft_command(m)) is not None}
+    assert after == {(esc, "current", 0.0) for esc in (11, 12, 13, 14)}
+
+
+def vesc_command(msg: can.Message) -> tuple[int, str, float] | None:
+    """(VESC ID, "duty" or "current", value) of a VESC duty or current command, else None."""
+    frame = vesc_codec.decode(msg)
+    if frame is None:
+        return None
+    if isinstance(frame.message, vesc_records.SetDuty):
+        return frame.controller_id, "duty", round(frame.message.duty, 5)
+    if isinstance(frame.message, vesc_records.SetCurrent):
+        return frame.controller_id, "current", frame.message.current_a
+    return frame.controller_id, type(frame.message).__name__, 0.0
+
+
+def test_pwm_on_vesc_sends_duty_to_one_vesc_and_releases_the_rest(
+    start_daemon: Callable[..., Daemon],
+    autopilot: Autopilot,
+    observer: Observer,
+    gcs: Gcs,
+    tmp_path: Path,
+) -> None:
+    extra = '[output]\nprotocol = "vesc"\n[escs]\nids = [11, 12, 13, 14]\n'
+    start_daemon("--config", write_config(tmp_path / "b.toml", gcs, extra))
+    autopilot.start_stream(50)
+    observer.wait_for(lambda m: vesc_codec.decode(m) is not None, START_TIMEOUT_S)
+    heard_disarmed(gcs)
+    sent = time.monotonic()
+    assert gcs.motor_test(2, PWM, 1500, timeout_s=0.6) == ACCEPTED  # PWM 1500: half throttle
+    first, _ = observer.wait_for(
+        lambda m: (c := vesc_command(m)) is not None and c[1] == "duty", 2.0
+    )
+    time.sleep(1.0)
+    commands = [(m.timestamp, c) for m in observer.since(sent) if (c := vesc_command(m))]
+    duties = [(ts, c) for ts, c in commands if c[1] == "duty"]
+    assert {c for _, c in duties} == {(12, "duty", 0.475)}  # 0.5 of vesc_max_duty 0.95
+    assert 0.5 <= duties[-1][0] - duties[0][0] <= 0.8
+    others = {c for _, c in commands if c[0] != 12}
+    assert others == {(11, "current", 0.0), (13, "current", 0.0), (14, "current", 0.0)}
+    after = {c for m in observer.since(first + 0.8) if (c := vesc_command(m)) is not None}
     assert after == {(esc, "current", 0.0) for esc in (11, 12, 13, 14)}
 
 

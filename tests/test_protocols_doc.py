@@ -1,7 +1,7 @@
 """docs/protocols.md, the protocol reference the code cites: every ``docs/protocols.md §N.M`` in
 the repository (and every ``§N.M`` inside the page) names a section that exists, nothing cites
-the workspace's PROTOCOLS.md any more, and the page's example frames (§3.9, §4.8, §5.5) are what
-the production codecs encode and decode.
+the workspace's PROTOCOLS.md any more, and the page's example frames (§3.9, §4.8, §5.5, §6.9)
+are what the production codecs encode and decode.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import codec as dronecan
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
+from bridge.escs.vesc import codec as vesc
+from bridge.escs.vesc import records as vesc_records
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "protocols.md"
@@ -179,6 +181,23 @@ DRONECAN_EXAMPLES: dict[str, dronecan.RawCommand | dronecan.NodeStatus] = {
 }
 
 
+V = vesc_records
+VESC_EXAMPLES = {
+    "SET_CURRENT to VESC 23: 51 A": V.VescFrame(23, V.SetCurrent(51.0)),
+    "SET_DUTY to VESC 2: -0.25": V.VescFrame(2, V.SetDuty(-0.25)),
+    "SET_RPM to every VESC: -7000 erpm": V.VescFrame(255, V.SetRpm(-7000)),
+    "PING to VESC 23 from host 254": V.VescFrame(23, V.Ping(254)),
+    "PONG to host 254 from VESC 23, a VESC": V.VescFrame(254, V.Pong(23, V.HwType.VESC)),
+    "STATUS from VESC 23: 35 000 erpm, 12.3 A, duty 0.456": V.VescFrame(
+        23, V.Status(35000, 12.3, 0.456)
+    ),
+    "STATUS_4 from VESC 23: 35.5 °C, 48.2 °C, 7.5 A, 180°": V.VescFrame(
+        23, V.Status4(35.5, 48.2, 7.5, 180.0)
+    ),
+    "STATUS_5 from VESC 23: tachometer 123 456, 25.2 V": V.VescFrame(23, V.Status5(123456, 25.2)),
+}
+
+
 def same_frame(a: can.Message, b: can.Message) -> bool:
     return (a.arbitration_id, bytes(a.data)) == (b.arbitration_id, bytes(b.data))
 
@@ -188,6 +207,7 @@ def test_the_pages_example_tables_are_the_ones_checked_here() -> None:
     assert set(example_rows("3.9")) == set(CKESC_EXAMPLES)
     assert set(example_rows("4.8")) == set(FT_EXAMPLES)
     assert set(example_rows("5.5")) == set(DRONECAN_EXAMPLES)
+    assert set(example_rows("6.9")) == set(VESC_EXAMPLES)
 
 
 @pytest.mark.parametrize("what", sorted(CKESC_EXAMPLES))
@@ -204,6 +224,20 @@ def test_ft_example_frame(what: str) -> None:
     expected = FT_EXAMPLES[what]
     assert ft_codec.decode(frame) == expected
     assert same_frame(ft_codec.encode(expected), frame)
+
+
+@pytest.mark.parametrize("what", sorted(VESC_EXAMPLES))
+def test_vesc_example_frame(what: str) -> None:
+    (frame,) = example_rows("6.9")[what]
+    expected = VESC_EXAMPLES[what]
+    assert vesc.decode(frame) == expected
+    assert same_frame(vesc.encode(expected), frame)
+
+
+def test_the_vesc_example_of_the_issue_is_the_pages() -> None:
+    # 51 A to VESC 23: EID 0x117, data 00 00 C7 38 (issue 21).
+    (frame,) = example_rows("6.9")["SET_CURRENT to VESC 23: 51 A"]
+    assert (frame.arbitration_id, bytes(frame.data)) == (0x117, bytes.fromhex("0000C738"))
 
 
 def test_ft_crc_check_value_is_the_pages() -> None:

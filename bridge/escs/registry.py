@@ -22,6 +22,7 @@ FAMILIES: Final[dict[str, str]] = {
     "ckesc": "bridge.escs.ckesc.family:CkescFamily",
     "ft": "bridge.escs.ft.family:FtFamily",
     "dronecan": "bridge.escs.dronecan.family:DronecanFamily",
+    "vesc": "bridge.escs.vesc.family:VescFamily",
 }
 """Family name -> "module:class" of its :class:`~bridge.escs.family.EscFamily`, in the order
 the names are listed (the first is the default protocol) and IDs are claimed."""

@@ -14,6 +14,11 @@ from conftest import ESC_BRIDGE, ROOT
 from bridge.capture import BadLine, read_capture
 from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.escs.dronecan.driver import DronecanDriver
+from bridge.escs.family import EscSetup
+from bridge.escs.vesc import codec as vesc_codec
+from bridge.escs.vesc import records as vesc_records
+from bridge.escs.vesc.family import VescFamily
+from bridge.escs.vesc.keys import VescKeys
 
 CKESC_LOG = ROOT / "tests" / "data" / "ckesc-quad.log"
 FT_LOG = ROOT / "tests" / "data" / "ft-quad.log"
@@ -151,6 +156,67 @@ def test_dronecan_capture_auto(tmp_path: Path) -> None:
     auto = decode(str(path)).stdout
     assert auto == decode(str(path), "--protocol", "dronecan").stdout
     assert "5  dronecan TransferPart" in auto and "1  CrcError" in auto
+
+
+def vesc_capture(path: Path, malformed: bool) -> Path:
+    """A candump log of a VESC bus: the bridge's duty commands to VESCs 1..4, each VESC's STATUS,
+    STATUS_4 and STATUS_5, a PING and its PONG, a NOTIFY_BOOT; with ``malformed`` also a STATUS
+    cut to 7 bytes and a 6-byte SET_CURRENT (the off-delay form the bridge does not read)."""
+    v = vesc_records
+    driver = VescFamily().driver(EscSetup((1, 2, 3, 4), VescKeys()))
+    frames = [driver.tick_frames(tick, [0.1, 0.2, 0.3, 0.4])[0] for tick in range(4)]
+    for n in (1, 2, 3, 4):
+        for record in (
+            v.Status(-7000 * n, 2.5 * n, -0.1 * n),
+            v.Status4(30.0 + n, 40.0 + n, 1.5 * n, 0.0),
+            v.Status5(100 * n, 24.8),
+        ):
+            frames.append(vesc_codec.encode(v.VescFrame(n, record)))
+    frames.append(vesc_codec.encode(v.VescFrame(2, v.Ping(254))))
+    frames.append(vesc_codec.encode(v.VescFrame(254, v.Pong(2, v.HwType.VESC))))
+    frames.append(vesc_codec.encode(v.VescFrame(3, v.NotifyBoot("60_MK6"))))
+    if malformed:
+        frames.append(can.Message(arbitration_id=0x903, data=bytes(7), is_extended_id=True))
+        frames.append(can.Message(arbitration_id=0x104, data=bytes(6), is_extended_id=True))
+    with can.Logger(path) as log:
+        for i, msg in enumerate(frames):
+            msg.timestamp, msg.channel = 1795330000.0 + i / 1000, "can0"
+            log.on_message_received(msg)
+    return path
+
+
+def test_vesc_capture(tmp_path: Path) -> None:
+    path = vesc_capture(tmp_path / "vesc.log", malformed=True)
+    result = decode(str(path), "--protocol", "vesc")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "vesc  node 2   SetDuty  duty=0.19" in out
+    assert "vesc  node 3   Status  erpm=-21000 motor_current_a=7.5 duty=-0.3" in out
+    assert (
+        "vesc  node 4   Status4  fet_temp_c=34 motor_temp_c=44 input_current_a=6 pid_position_deg=0"
+    ) in out
+    assert "vesc  node 1   Status5  tachometer=100 input_voltage_v=24.8" in out
+    assert "vesc  node 2   Ping  sender_id=254" in out
+    assert "vesc  node 254 Pong  controller_id=2 hw_type=0" in out
+    assert "vesc  node 3   NotifyBoot  hw_name=60_MK6" in out
+    assert "DlcError: VESC STATUS (9), controller 3: 7 data bytes, expected 8" in out
+    assert "DlcError: VESC SET_CURRENT (1), controller 4: 6 data bytes, expected 4 (the" in out
+    summary = out[out.index("-- 21 frames") :]
+    for line in ("4  vesc SetDuty", "4  vesc Status", "1  vesc Pong", "2  DlcError"):
+        assert line in summary
+    result = decode(str(path), "--protocol", "vesc", "--json")
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    status = next(r for r in records if r.get("type") == "Status4")
+    assert status["node"] == 1 and status["fields"]["input_current_a"] == 1.5
+
+
+def test_vesc_capture_auto(tmp_path: Path) -> None:
+    """VESC's ID space is FT's: auto tries FT first and gives VESC what FT does not understand.
+    Every frame of a well-formed VESC capture of IDs 1..4 decodes as VESC's that way."""
+    path = vesc_capture(tmp_path / "vesc.log", malformed=False)
+    auto = decode(str(path)).stdout
+    assert auto == decode(str(path), "--protocol", "vesc").stdout
+    assert " ft " not in auto and "Error" not in auto
 
 
 @pytest.mark.parametrize(

@@ -57,6 +57,15 @@ def test_ft_commands_cover_every_esc_of_the_cycle() -> None:
     )
 
 
+def test_vesc_commands_are_duty_and_its_safe_value_is_zero_amps() -> None:
+    # Duty by default, up to vesc_max_duty 0.95; the safe value releases the motor (0 A).
+    running = _commands("vesc", SENT_COMMANDS, -1, [0.1, 0.2, 0.5, 1.0])
+    assert running == [(pytest.approx(v), "duty") for v in (0.095, 0.19, 0.475, 0.95)]
+    assert _commands("vesc", SENT_SAFE, -1, [0.5] * 4) == [(0.0, "current_a")] * 4
+    testing = _commands("vesc", SENT_TEST, 3, [0.0, 0.0, 0.0, 0.5])
+    assert testing == [(0.0, "current_a")] * 3 + [(pytest.approx(0.475), "duty")]
+
+
 def test_a_new_record_is_taken_once() -> None:
     raw = {
         "can": {"interface": "virtual", "channel": "commands-sent-2"},

@@ -31,6 +31,8 @@ from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan import codec as dronecan_codec
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
+from bridge.escs.vesc import codec as vesc_codec
+from bridge.escs.vesc import records as vesc_records
 from bridge.monitor import (
     VehicleState,
     failure_names,
@@ -115,6 +117,12 @@ DRONECAN_ESCS = {
     3: (3500, 60, 24.75, 7.5, 37.0, 3),
 }
 _dronecan_senders = {number: dronecan_codec.Sender(40 + number) for number in DRONECAN_ESCS}
+# VESC ID -> (erpm, motor A, duty, MOSFET °C, motor °C, input A, volts); VESC 3 regenerates.
+VESC_ESCS = {
+    1: (7000, 11.0, 0.1, 36.0, 61.0, 1.5, 48.1),
+    2: (14000, 12.0, 0.2, 37.0, 62.0, 3.0, 48.2),
+    3: (21000, -13.0, 0.3, 38.0, 120.0, -4.5, 48.3),
+}
 
 
 def ckesc_frames(transfer_id: int) -> list[can.Message]:
@@ -156,6 +164,18 @@ def dronecan_frames(transfer_id: int) -> list[can.Message]:
     return frames
 
 
+def vesc_frames(transfer_id: int) -> list[can.Message]:
+    frames = []
+    for controller_id, (erpm, motor_a, duty, mos, motor, input_a, volts) in VESC_ESCS.items():
+        for message in (
+            vesc_records.Status(erpm, motor_a, duty),
+            vesc_records.Status4(mos, motor, input_a, 0.0),
+            vesc_records.Status5(transfer_id, volts),
+        ):
+            frames.append(vesc_codec.encode(vesc_records.VescFrame(controller_id, message)))
+    return frames
+
+
 class EscPlayer:
     """Sends telemetry on a udp_multicast bus every 20 ms, in a thread, until closed."""
 
@@ -186,7 +206,12 @@ def can_port() -> int:
 
 @pytest.fixture
 def player(can_port: int, request: pytest.FixtureRequest) -> Iterator[EscPlayer]:
-    frames = {"ckesc": ckesc_frames, "ft": ft_frames, "dronecan": dronecan_frames}[request.param]
+    frames = {
+        "ckesc": ckesc_frames,
+        "ft": ft_frames,
+        "dronecan": dronecan_frames,
+        "vesc": vesc_frames,
+    }[request.param]
     esc_player = EscPlayer(can_port, frames)
     yield esc_player
     esc_player.close()
@@ -280,6 +305,30 @@ def test_dronecan_from_the_bus(can_port: int, player: EscPlayer) -> None:
     assert motors[1]["flags"] == ""
     assert motors[2]["flags"] == "overtemp"  # above [telemetry] max_temp_c
     assert motors[3]["flags"] == "generic"  # its NodeStatus says CRITICAL
+    assert motors[4]["state"] == "offline"
+    assert "frames read, 0 malformed" in result.stdout
+
+
+@pytest.mark.parametrize("player", ["vesc"], indirect=True)
+def test_vesc_from_the_bus(can_port: int, player: EscPlayer) -> None:
+    result = monitor(*can_args(can_port), "--protocol", "vesc", "--escs", "4", "--duration", "1.5")
+    assert result.returncode == 0, result.stderr
+    title, rows = tables(result.stdout)[-1]
+    assert title == f"udp_multicast:{MULTICAST_GROUP}: 3/4 ESCs online"
+    motors = by_motor(rows)
+    for controller_id, (erpm, _, duty, mos, motor, input_a, volts) in VESC_ESCS.items():
+        row = motors[controller_id]
+        assert (row["node"], row["state"]) == (str(controller_id), "online")
+        assert row["rpm"] == str(int(erpm / 7))  # [telemetry] pole_pairs 7 unless set
+        assert row["V"] == f"{volts:.2f}"
+        assert row["A"] == f"{input_a:.2f}"  # the battery side: STATUS_4's input current
+        assert (row["MOS°C"], row["motor°C"]) == (f"{mos:.0f}", f"{motor:.0f}")
+        assert (row["cap°C"], row["MCU°C"]) == ("-", "-")  # VESC reports neither
+        assert row["thr%"] == f"{duty * 100:.0f}"
+        assert int(row["frames"]) > 10 and row["errors"] == "0"
+    assert motors[3]["A"] == "-4.50"  # regenerating into the battery
+    assert motors[3]["flags"] == "overtemp"  # 120 °C motor: above [telemetry] max_temp_c
+    assert motors[1]["flags"] == motors[2]["flags"] == ""
     assert motors[4]["state"] == "offline"
     assert "frames read, 0 malformed" in result.stdout
 

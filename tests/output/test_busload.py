@@ -55,3 +55,18 @@ def test_dronecan_bus_load_arithmetic() -> None:
     assert bus_load(quad).command_frames_per_s == 401
     high = build_config({"output": {"protocol": "dronecan"}, "escs": {"ids": [5, 6, 7, 8]}}, "v")
     assert bus_load(with_esc_count(high, 4)).command_frames_per_s == 400 * 3 + 1
+
+
+def test_vesc_bus_load_arithmetic_and_the_octo_that_needs_1_mbit() -> None:
+    quad = with_esc_count(build_config({"output": {"protocol": "vesc"}}, "v"), 4)
+    assert quad.bitrate == 500_000 and quad.rate_hz == 200  # the family's defaults
+    load = bus_load(quad)
+    # A 4-byte command per VESC per cycle; STATUS 1-5 (8 bytes) at 50 Hz from each.
+    assert load.command_frames_per_s == 4 * 200
+    assert load.command_bits_per_s == 4 * 200 * frame_bits(4) == 96_000
+    assert load.telemetry_frames_per_s == 4 * 5 * 50
+    assert load.telemetry_bits_per_s == 4 * 5 * 50 * 160 == 160_000
+    raw = {"output": {"protocol": "vesc"}, "mixer": {"name": "passthrough-8"}}
+    with pytest.raises(ConfigError, match=r"bus load 102\.4% of 500 kbit/s.*exceeds the ceiling"):
+        preflight.plan(build_config(raw, "v.toml"))
+    preflight.plan(build_config({**raw, "can": {"bitrate": 1_000_000}}, "v.toml"))

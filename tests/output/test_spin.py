@@ -21,6 +21,8 @@ from bridge.escs.ckesc import codec as ckesc_codec
 from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
+from bridge.escs.vesc import codec as vesc_codec
+from bridge.escs.vesc import records as vesc_records
 from bridge.output.motor_test import SpinRequest
 from bridge.output.spin import plan_spin
 from bridge.sim.runner import Simulator, make_escs
@@ -151,6 +153,48 @@ def test_ft_spin_commands_one_esc_in_its_mode_and_brakes_the_others(
         (e, ft_records.SetCurrentBrake) for e in (21, 22, 23, 24)
     }
     assert 60 <= len(flush) <= 100  # 200 ms at 4 x 100 frames/s
+
+
+def test_vesc_spin_commands_one_vesc_in_duty_and_releases_the_others(
+    observer: Observer, can_port: int, bus_args: list[str], tmp_path: Path
+) -> None:
+    config = tmp_path / "vesc.toml"
+    config.write_text('[output]\nprotocol = "vesc"\n[escs]\nids = [21, 22, 23, 24]\n')
+    sim = simulator(can_port, "vesc", [21, 22, 23, 24])
+    try:
+        proc = spin(
+            "--config", str(config), "--motor", "2", "--throttle", "30", "--seconds", "1.2",
+            "--props-removed", *bus_args,
+        )  # fmt: skip
+        observer.wait_for(lambda m: vesc_command(m) == (22, vesc_records.SetDuty(0.285)), 10.0)
+        time.sleep(0.2)  # holding: only motor 2 turns
+        rpm = [esc.motor.rpm for esc in sim.escs]
+        out, err = proc.communicate(timeout=10)
+    finally:
+        sim.close()
+    assert proc.returncode == 0, err
+    assert "(VESC 22, duty mode)" in out and "VESC duty 0.285" in out
+    assert rpm[1] > 1000 and rpm[0] == rpm[2] == rpm[3] == 0
+    time.sleep(0.2)
+    commands = [c for _, m in observer.frames if (c := vesc_command(m)) is not None]
+    spun = [m.duty for esc, m in commands if isinstance(m, vesc_records.SetDuty)]
+    assert {esc for esc, m in commands if isinstance(m, vesc_records.SetDuty)} == {22}
+    assert max(spun) == pytest.approx(0.285) and spun[0] < 0.05 and spun[-1] < 0.05  # ramps
+    released = vesc_records.SetCurrent(0.0)  # the safe value: the motor released
+    assert {(esc, m) for esc, m in commands if esc != 22} == {(e, released) for e in (21, 23, 24)}
+    last = max(i for i, (_, m) in enumerate(commands) if isinstance(m, vesc_records.SetDuty))
+    flush = commands[last + 1 :]
+    assert set(flush) == {(e, released) for e in (21, 22, 23, 24)}
+    assert 120 <= len(flush) <= 200  # 200 ms at 4 x 200 frames/s
+
+
+def vesc_command(msg: can.Message) -> tuple[int, vesc_records.VescMessage] | None:
+    frame = vesc_codec.decode(msg)
+    if frame is None or not isinstance(
+        frame.message, vesc_records.SetDuty | vesc_records.SetCurrent
+    ):
+        return None
+    return frame.controller_id, frame.message
 
 
 def test_ft_spin_with_no_ft_esc_says_nothing_answered(

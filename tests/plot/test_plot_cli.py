@@ -30,7 +30,7 @@ def esc_bridge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[s
     )
 
 
-@pytest.fixture(scope="module", params=["ckesc", "ft"])
+@pytest.fixture(scope="module", params=["ckesc", "ft", "vesc"])
 def recorded(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A directory holding one recorded demo flight (quad, flown 4 times faster)."""
     directory = tmp_path_factory.mktemp(f"record-{request.param}")

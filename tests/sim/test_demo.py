@@ -146,7 +146,7 @@ def test_outputs_at_refuses_nonsense() -> None:
 # -- the bridge's configuration ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("protocol", ["ckesc", "ft", "dronecan"])
+@pytest.mark.parametrize("protocol", ["ckesc", "ft", "dronecan", "vesc"])
 @pytest.mark.parametrize("airframe", AIRFRAMES)
 def test_the_bridge_configuration_is_valid_and_fits_the_bus(
     protocol: str, airframe: Airframe
@@ -215,8 +215,13 @@ def _summary(output: str, escs: int) -> dict[int, tuple[int, str]]:
 
 @pytest.mark.parametrize(
     ("protocol", "extra"),
-    [("ckesc", []), ("ft", ["--duration", "10"]), ("dronecan", ["--duration", "10"])],
-    ids=["ckesc-one-flight", "ft-duration", "dronecan-duration"],
+    [
+        ("ckesc", []),
+        ("ft", ["--duration", "10"]),
+        ("dronecan", ["--duration", "10"]),
+        ("vesc", ["--duration", "10"]),
+    ],
+    ids=["ckesc-one-flight", "ft-duration", "dronecan-duration", "vesc-duration"],
 )
 def test_demo_runs_headless_and_cleans_up(protocol: str, extra: list[str]) -> None:
     marker = uuid.uuid4().hex

@@ -236,12 +236,15 @@ def test_make_escs_defaults_and_checks() -> None:
         (3, 3),
     ]
     assert [e.node_id for e in make_escs("ft", 2, [0, 200])] == [0, 200]
+    vescs = make_escs("vesc", 2, [0, 254])
+    assert [(type(e).__name__, e.node_id) for e in vescs] == [("SimVesc", 0), ("SimVesc", 254)]
     bad: list[tuple[Callable[[], object], str]] = [
         (lambda: make_escs("ft", 0), "at least one"),
         (lambda: make_escs("ft", 2, [1]), "1 IDs for 2"),
         (lambda: make_escs("ft", 2, [4, 4]), "distinct"),
         (lambda: make_escs("ft", 1, [256]), "0..255"),
         (lambda: make_escs("ckesc", 1, [126]), "1..125"),
+        (lambda: make_escs("vesc", 1, [255]), "0..254"),  # 255 addresses every VESC
         (lambda: make_escs("ckesc", 2, keys=CkescKeys(ckesc_channels=(1,))), "1 channels for 2"),
         (lambda: make_escs("dshot", 1), "'ckesc' or 'ft'"),
     ]

@@ -456,7 +456,7 @@ def write_bridge_config(
 
 def esc_period_s(config: Path) -> float:
     """How often a bridge run with ``config`` commands each ESC: its family's driver's ticks
-    per cycle at its output rate (CKESC, DroneCAN: every tick; FT: one ESC a tick)."""
+    per cycle at its output rate (CKESC, DroneCAN: every tick; FT, VESC: one ESC a tick)."""
     built = build_config(read_config_file(config), str(config))
     return built.family.driver(built.esc_setup).ticks_per_cycle / built.rate_hz
 

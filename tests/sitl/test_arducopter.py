@@ -1,9 +1,10 @@
 """The bridge against a real ArduCopter SITL: one autopilot start, one flight, many checks.
 
 What runs (all on loopback, see conftest.py): ArduCopter SITL (quad, real time) with a ground
-station on SERIAL0; three bridges through their CLI, a CKESC one (RawCommand_12b, 400 Hz) on
-SERIAL1, an FT one (current mode, 20 A full scale, 100 Hz per ESC) on SERIAL2 and a DroneCAN one
-(RawCommand, 400 Hz) on SERIAL5 (added with ``--serial5 tcp:5``), each through a recording tap
+station on SERIAL0; four bridges through their CLI, a CKESC one (RawCommand_12b, 400 Hz) on
+SERIAL1, an FT one (current mode, 20 A full scale, 100 Hz per ESC) on SERIAL2, a DroneCAN one
+(RawCommand, 400 Hz) on SERIAL5 and a VESC one (duty, 0.95 full scale, 200 Hz per ESC) on SERIAL6
+(added with ``--serial5 tcp:5``, ``--serial6 tcp:6``), each through a recording tap
 and each on a CAN bus of its own with four simulated ESCs and an independent observer. A rig is
 an ESC family's name (the registry's) and its expected command; the frames are read through the
 family (``commands_seen``, ``telemetry``), so the checks are the same for every rig. The
@@ -23,8 +24,8 @@ a "SITL measurements" section at the end of the run. ESC_BRIDGE_ARDUCOPTER names
 build (see conftest.py).
 
 The scaling is the passthrough mixer's: PWM 1000..2000 µs to 0..1, then CKESC throttle
-round(2000·x), FT current 20 A·x (the bridge's `[escs] ft_max_current_a` default) and DroneCAN
-RawCommand round(8191·x).
+round(2000·x), FT current 20 A·x (the bridge's `[escs] ft_max_current_a` default), DroneCAN
+RawCommand round(8191·x) and VESC duty 0.95·x (`[escs] vesc_max_duty`).
 """
 
 from __future__ import annotations
@@ -80,6 +81,7 @@ INPUT_TIMEOUT_S = 0.100  # [output] input_timeout_ms default
 STREAM_HZ = 200  # [mavlink] stream_rate_hz default
 FT_FULL_SCALE_A = 20.0
 DRONECAN_FULL_SCALE = 8191
+VESC_FULL_SCALE_DUTY = 0.95
 POLE_PAIRS = 7  # [telemetry] pole_pairs default: the bridge's rpm of a family reporting erpm
 # The observer's and the tap's stamps, taken in two processes, may be this far apart (as in
 # test_px4.py's lag rule): a frame stamped just before the tap's stamp of the output it carries.
@@ -120,6 +122,10 @@ def dronecan_command(pwm: int) -> float:
     return round((min(max(pwm, 1000), 2000) - 1000) / 1000 * DRONECAN_FULL_SCALE)
 
 
+def vesc_duty(pwm: int) -> float:
+    return (min(max(pwm, 1000), 2000) - 1000) / 1000 * VESC_FULL_SCALE_DUTY
+
+
 @dataclass(frozen=True)
 class RigSpec:
     """A rig: the ESC family (its registry name), what its commands should be for a PWM, and
@@ -130,22 +136,23 @@ class RigSpec:
     tolerance: float
 
 
-# In the order of their links (SERIAL1, SERIAL2, SERIAL5) and components (191, 192, 193).
+# In the order of their links (SERIAL1, SERIAL2, SERIAL5, SERIAL6) and components (191..194).
 RIGS = (
     RigSpec("ckesc", ckesc_throttle, 0.0),
     RigSpec("ft", ft_current, 1e-4),
     RigSpec("dronecan", dronecan_command, 1.0),
+    RigSpec("vesc", vesc_duty, 1e-5),  # duty in steps of 1e-5
 )
 RIG_NAMES = [spec.family for spec in RIGS]
-SERIALS = (1, 2, 5)
+SERIALS = (1, 2, 5, 6)
 EXTRA_SERIALS = tuple(n for n in SERIALS if n > 2)
 
 
 @dataclass(frozen=True)
 class Command:
     """One command frame as the observer saw it: kernel receive time, motor index (0-based),
-    value (CKESC throttle, FT amps, DroneCAN RawCommand value). A frame for four ESCs (CKESC
-    12b, DroneCAN) becomes four of these."""
+    value (CKESC throttle, FT amps, DroneCAN RawCommand value, VESC duty). A frame for four ESCs
+    (CKESC 12b, DroneCAN) becomes four of these."""
 
     t: float
     motor: int
@@ -170,7 +177,7 @@ class Rig:
     reader: EscDecoder
     """The rig's family, decoding this bus's frames (:func:`frame_reader`)."""
     commands: list[list[Command]] = field(default_factory=list)
-    """Per command frame (CKESC, DroneCAN: all four motors; FT: one ESC), its commands."""
+    """Per command frame (CKESC, DroneCAN: all four motors; FT, VESC: one ESC), its commands."""
     telemetry: list[tuple[float, EscTelemetry]] = field(default_factory=list)
     """Every telemetry frame: its receive time and what it said, in the family's neutral terms."""
     malformed: list[str] = field(default_factory=list)
@@ -926,7 +933,7 @@ def test_ardupilot_motor_test_within_a_heartbeat_period(flight: Flight, rig_name
 
 
 def test_esc_telemetry_reaches_the_ground_station(flight: Flight) -> None:
-    """ESC_TELEMETRY_1_TO_4 from each bridge (components 191..193), forwarded by ArduCopter
+    """ESC_TELEMETRY_1_TO_4 from each bridge (components 191..194), forwarded by ArduCopter
     to the ground station, carries the simulated ESCs' rpm and volts as they were on the bus
     (read as the family's neutral telemetry; erpm over the pole pairs); ArduCopter sends none
     of its own (SIM_ESC_TELEM 0)."""

@@ -70,6 +70,8 @@ CKESC_TELEMETRY = range(20050, 20065)  # MSG1 .. MSG_EXP12
 CKESC_COMMANDS = (20100, 20101, 20102)  # RawCommand_14b, _12b, _10b
 FT_TELEMETRY = (0x0B, 0x0C, 0x0D)
 FT_COMMANDS = (*range(0x00, 0x06), *range(0x12, 0x1C))
+VESC_TELEMETRY = (9, 14, 15, 16, 27, 58)  # STATUS .. STATUS_6: packet << 8 | VESC ID
+VESC_COMMANDS = (0, 1, 2, 3, 10)  # SET_DUTY, SET_CURRENT, SET_CURRENT_BRAKE, SET_RPM, _REL
 
 _channels = itertools.count()
 
@@ -85,6 +87,9 @@ def is_ours(protocol: str, ids: Collection[int], can_id: int, extended: bool) ->
         return type_id in CKESC_TELEMETRY and node in ids
     if can_id >> 16:
         return False
+    if protocol == "vesc":
+        packet, vesc = can_id >> 8, can_id & 0xFF
+        return vesc in ids and packet in VESC_TELEMETRY
     esc, command = can_id >> 8, can_id & 0xFF
     return esc in ids and command in FT_TELEMETRY
 
@@ -260,6 +265,8 @@ def junk(protocol: str, ids: Collection[int], n: int, seed: int) -> list[can.Mes
         ("ckesc", [7], 4),
         ("ft", [1, 2, 3, 4], 6),  # {0x0B}, {0x0C, 0x0D} x 3
         ("ft", [0, 1, 2, 3, 4, 5, 6, 7], 2),
+        ("vesc", [1, 2, 3, 4], 15),  # {9}, {14, 15}, {16}, {27}, {58} x 3
+        ("vesc", [0, 1, 2, 3, 4, 5, 6, 7], 5),
     ],
 )
 def test_filter_counts(protocol: str, ids: list[int], count: int) -> None:
@@ -317,6 +324,15 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
             st.booleans(),
             st.one_of(nodes, st.just(0)),
         )
+    elif protocol == "vesc":
+        packets = st.one_of(st.sampled_from([*VESC_TELEMETRY, *VESC_COMMANDS]), st.integers(0, 255))
+        high = st.one_of(st.just(0), st.integers(1, 0x1FFF))
+        near = st.builds(
+            lambda top, packet, vesc: top << 16 | packet << 8 | vesc,
+            high,
+            packets,
+            st.one_of(nodes, st.integers(0, 255)),
+        )
     else:
         commands = st.one_of(st.sampled_from([*FT_TELEMETRY, *FT_COMMANDS]), st.integers(0, 255))
         high = st.one_of(st.just(0), st.integers(1, 0x1FFF))
@@ -332,11 +348,11 @@ def frame_ids(protocol: str, ids: frozenset[int]) -> st.SearchStrategy[tuple[int
     )
 
 
-@pytest.mark.parametrize("protocol", ["ckesc", "ft"])
+@pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
 @given(data=st.data())
 @settings(max_examples=80, deadline=None)
 def test_filters_pass_exactly_our_telemetry(protocol: str, data: st.DataObject) -> None:
-    top = 125 if protocol == "ckesc" else 255
+    top = {"ckesc": 125, "ft": 255, "vesc": 254}[protocol]
     ids = data.draw(st.frozensets(st.integers(1, top), min_size=1, max_size=20), label="ids")
     frames = data.draw(st.lists(frame_ids(protocol, ids), min_size=50, max_size=50))
     filters = telemetry_filters(protocol, ids)
@@ -377,6 +393,15 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
                 0, ckesc_records.TYPE_RAW_COMMAND_12B, 5
             ),  # a command from another host
         ]
+    elif protocol == "vesc":
+        telemetry = [packet << 8 | vesc for packet in VESC_TELEMETRY for vesc in ids]
+        commands = [packet << 8 | vesc for packet in VESC_COMMANDS for vesc in ids]
+        others = [
+            9 << 8 | 9,  # not our VESC
+            18 << 8 | ids[0],  # a PONG to one of our IDs: not telemetry
+            57 << 8 | ids[0],  # NOTIFY_BOOT: not telemetry
+            5 << 8 | ids[0],  # FILL_RX_BUFFER: VESC Tool's traffic
+        ]
     else:
         telemetry = [ft_records.can_id(esc, command) for command in FT_TELEMETRY for esc in ids]
         commands = [ft_records.can_id(esc, command) for command in FT_COMMANDS for esc in ids]
@@ -388,7 +413,7 @@ def every_id(protocol: str, ids: list[int]) -> tuple[list[int], list[int], list[
     return telemetry, commands, others
 
 
-@pytest.mark.parametrize("protocol", ["ckesc", "ft"])
+@pytest.mark.parametrize("protocol", ["ckesc", "ft", "vesc"])
 def test_a_filtered_handle_receives_every_telemetry_frame_and_nothing_else(protocol: str) -> None:
     ids = [1, 2, 3, 4]
     telemetry, commands, others = every_id(protocol, ids)
@@ -424,6 +449,8 @@ def test_ids_no_filter_can_name_and_misused_arguments_are_refused() -> None:
         telemetry_filters("ckesc", [0, 1, 126])
     with pytest.raises(ValueRangeError, match=r"FT ESC IDs \[256\] are not in 0\.\.255"):
         telemetry_filters("ft", [255, 256])
+    with pytest.raises(ValueRangeError, match=r"VESC IDs \[255\] are not in 0\.\.254"):
+        telemetry_filters("vesc", [254, 255])
     config = CanConfig(interface="virtual", channel=f"refused-{next(_channels)}")
     with pytest.raises(ValueError, match="filters go with receive='telemetry'"):
         open_bus(config, 500_000, receive="telemetry")
