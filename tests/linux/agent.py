@@ -1,17 +1,16 @@
 """The agent on the kernel under test: runs the functions the host's tests ask for, one at a time.
 
 It reads one request per line on stdin (``{"id": 1, "function": "linux.test_x:name",
-"kwargs": {...}}``), runs the function, writes what it returned (or the traceback it raised)
-with the guest's log of that call (:data:`linux.guest.LOG`) as JSON to
-``$ESC_BRIDGE_EXCHANGE/<id>.json``, and answers with the line ``{"id": 1}``. It reads until
-stdin closes. Before the first request it says ``{"ready": ...}`` with the kernel's release.
+"kwargs": {...}}``), runs the function, and answers with one line of JSON on stdout: the id,
+what the function returned (or the traceback it raised), the guest's log of that call
+(:data:`linux.guest.LOG`) and how long it took. It reads until stdin closes. Before the first
+request it says ``{"ready": ...}`` with the kernel's release.
 
-Inside User-Mode Linux, stdin and stdout are the console channel the host holds
-(``uml_init.sh``); on a host that makes its own vcan they are the pipes of a subprocess
-(:mod:`linux.kernel`). Answers go through a file, not the channel, so their size never
-matters to the console. Nothing but the answers may reach the channel: the agent keeps it on
-descriptors of its own and gives stdin /dev/null and stdout its stderr, which every process a
-test starts inherits.
+Inside User-Mode Linux, stdin and stdout are the console channel the host holds (``uml_init.sh``
+starts the agent on it, or systemd does, ``uml_systemd_init.sh``); on a host that makes its own
+vcan they are the pipes of a subprocess (:mod:`linux.kernel`). Nothing but the answers may reach
+the channel: the agent keeps it on descriptors of its own and gives stdin /dev/null and stdout
+its stderr, which every process a test starts inherits.
 """
 
 from __future__ import annotations
@@ -49,10 +48,11 @@ def _answer(stream: IO[str], message: dict[str, Any]) -> None:
 
 
 def main() -> None:
+    # The functions asked for are in modules of tests/ (linux.*) and bench/.
     tests = Path(__file__).resolve().parent.parent
-    if str(tests) not in sys.path:
-        sys.path.insert(0, str(tests))
-    exchange = Path(os.environ["ESC_BRIDGE_EXCHANGE"])
+    for path in (tests.parent / "bench", tests):
+        if str(path) not in sys.path:
+            sys.path.insert(0, str(path))
     requests, answers = _channel()
     from linux import guest  # after the channel is safe: it imports the bridge
 
@@ -73,11 +73,10 @@ def main() -> None:
             result = {"ok": False, "error": traceback.format_exc()}
         finally:
             guest.end_call()
+        result["id"] = request["id"]
         result["log"] = guest.LOG.text()
         result["seconds"] = round(time.monotonic() - started, 3)
-        path = exchange / f"{request['id']}.json"
-        path.write_text(json.dumps(result))
-        _answer(answers, {"id": request["id"]})
+        _answer(answers, result)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import can
 import conftest
 
 MODE = os.environ.get("ESC_BRIDGE_KERNEL", "host")
@@ -242,12 +243,31 @@ def sim(channel: str, *extra: str) -> Process:
     return start(argv, "sim")
 
 
+def candump_message(line: str) -> tuple[float, can.Message]:
+    """A ``candump -L`` line as (the kernel's receive time, the frame).
+
+    Raises:
+        ValueError: not a ``candump -L`` line.
+    """
+    match = CANDUMP_LINE.match(line)
+    if match is None:
+        raise ValueError(f"not a candump -L line: {line!r}")
+    ident, _, data = match["frame"].partition("#")
+    message = can.Message(
+        arbitration_id=int(ident, 16), is_extended_id=len(ident) == 8, data=bytes.fromhex(data)
+    )
+    return float(match["time"]), message
+
+
 class Candump:
     """``candump -L`` on an interface: every frame with the kernel's receive time, the
-    observer that is not the bridge."""
+    observer that is not the bridge. Returns once its socket receives (an interpreter's start
+    and candump's own take seconds in a guest on a loaded host)."""
 
-    def __init__(self, channel: str, *options: str) -> None:
+    def __init__(self, channel: str, *options: str, timeout_s: float = 60.0) -> None:
+        before = len(receivers(channel))
         self.process = start(["candump", "-L", *options, channel], f"candump-{channel}")
+        wait_until(lambda: len(receivers(channel)) > before, timeout_s, "candump's socket")
 
     def lines(self) -> list[str]:
         """The ``candump -L`` lines so far (whole lines only)."""
@@ -360,6 +380,20 @@ def receivers(device: str) -> list[dict[str, str | int]]:
                     }
                 )
     return rows
+
+
+def systemctl_show(unit: str, *properties: str) -> dict[str, str]:
+    """``systemctl show``'s values of ``properties`` for ``unit``."""
+    out = run(["systemctl", "show", unit, *(f"--property={p}" for p in properties)])
+    return dict(line.split("=", 1) for line in out.splitlines() if "=" in line)
+
+
+def children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (the bridge's output loop, of its main process)."""
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
 
 
 def thread_cpu_s(pid: int) -> dict[str, float]:

@@ -3,9 +3,9 @@
 The tests in ``tests/linux/`` run the bridge, its peers and their observers on a vcan of a real
 kernel, and assert on the host. :func:`boot` gives a :class:`Kernel`; ``kernel.call(function,
 **kwargs)`` runs ``function`` (a module-level function of a module under ``tests/``, importable
-as ``linux.<module>``) where the kernel is, with the helpers of :mod:`linux.guest`, and returns
-what it returned (plain JSON data). One kernel holds every call of a test session: a call
-makes its own interfaces and processes and removes them at its end.
+as ``linux.<module>``, or of one in ``bench/``) where the kernel is, with the helpers of
+:mod:`linux.guest`, and returns what it returned (plain JSON data). One kernel holds every call
+of a test session: a call makes its own interfaces and processes and removes them at its end.
 
 Where it runs, in this order (``ESC_BRIDGE_LINUX`` = ``auto``, the default):
 
@@ -16,9 +16,14 @@ Where it runs, in this order (``ESC_BRIDGE_LINUX`` = ``auto``, the default):
   in a few seconds with the host's files as its root (hostfs) and one CPU. ``uml_init.sh`` is
   its PID 1: it mounts what the bridge needs, loads the CAN modules (vcan with ``echo=1``,
   vxcan, netem) and starts the agent on the console channel ``con1``, a pair of pipes the host
-  holds. The guest's own files (``/run``, ``/dev/shm``) are its memory; it writes the host's
-  files only where a call's answer goes (the exchange directory).
-- Neither: :func:`unavailable` says why and :data:`INSTALL` what to install; the tests skip.
+  holds. The guest's own files (``/run``, ``/dev/shm``) are its memory; of the host's files it
+  writes only Python's bytecode caches (the host user's, as a run on the host would).
+- Neither: :func:`choose` says why and :data:`INSTALL` what to install; the tests skip.
+
+:func:`boot_systemd` boots systemd itself in User-Mode Linux (``uml_systemd_init.sh``), on an
+overlay whose lower layer is the host's files and whose upper layer is the guest's memory: the
+host's files are never written. esc-bridge is installed there as docs/service.md says, and the
+agent runs as a service of its own on the same channel.
 
 ``ESC_BRIDGE_LINUX=uml`` or ``host`` asks for one (the other is not tried), ``off`` skips.
 
@@ -44,6 +49,7 @@ from typing import IO, Any
 ROOT = Path(__file__).resolve().parent.parent.parent
 TESTS = ROOT / "tests"
 INIT = Path(__file__).resolve().parent / "uml_init.sh"
+SYSTEMD_INIT = Path(__file__).resolve().parent / "uml_systemd_init.sh"
 MODE_ENV = "ESC_BRIDGE_LINUX"
 CACHE_ENV = "ESC_BRIDGE_CACHE"
 INSTALL = "sudo apt-get install user-mode-linux can-utils kmod iproute2"
@@ -54,7 +60,10 @@ TOOLS = {"candump": "can-utils", "cansend": "can-utils", "cangen": "can-utils"}
 TOOLS |= {"ip": "iproute2", "tc": "iproute2"}
 UML_TOOLS = {"linux": "user-mode-linux", "insmod": "kmod"}
 BOOT_TIMEOUT_S = 120.0  # the agent's first line; about 5 s on an idle machine, 30 s at load 10
+SYSTEMD_BOOT_TIMEOUT_S = 300.0  # systemd to start the agent; about 50 s on an idle machine
 CALL_TIMEOUT_S = 300.0
+HIDDEN_BY_UNIT = ("/home", "/root", "/tmp", "/var/tmp")  # ProtectHome=true, PrivateTmp=true
+SYSTEMD_FILES = {"/lib/systemd/systemd": "systemd", "/lib/systemd/systemd-networkd": "systemd"}
 UML_MEMORY = "1G"
 LOG_IN_ERROR = 8000  # the tail of a failed call's log in its error (all of it is printed)
 
@@ -72,13 +81,14 @@ class Kernel:
         process: subprocess.Popen[bytes],
         requests: IO[bytes],
         answers: IO[bytes],
-        exchange: Path,
+        workdir: Path,
         console: Path,
+        boot_timeout_s: float = BOOT_TIMEOUT_S,
     ) -> None:
         self.mode = mode
         """``uml`` or ``host``."""
-        self.exchange = exchange
-        """The host's directory the agent writes its answers into."""
+        self.workdir = workdir
+        """The host's directory of this kernel's console log (and UML's pid file)."""
         self._process = process
         self._requests = requests
         self._answers = answers
@@ -87,7 +97,7 @@ class Kernel:
         self._broken = ""
         self.release = ""
         """The kernel's release (``uname -r``)."""
-        ready = self._answer(BOOT_TIMEOUT_S, "the agent to start")
+        ready = self._answer(boot_timeout_s, "the agent to start")
         self.release = ready["ready"]
 
     def console(self, last: int = 60) -> str:
@@ -135,15 +145,18 @@ class Kernel:
         if self._broken:
             raise GuestError(f"the {self.mode} kernel broke in an earlier call: {self._broken}")
         module = function.__module__
-        if not module.startswith("linux."):
-            raise ValueError(f"{function.__qualname__} is in {module}, not under tests/linux")
+        if module == "__main__" or "." in function.__qualname__:
+            raise ValueError(
+                f"{function.__qualname__} ({module}): the agent imports a module-level function "
+                "of a module by its name (linux.<module> under tests/, or one of bench/)"
+            )
         request_id = self._next_id
         self._next_id += 1
         request = {"id": request_id, "function": f"{module}:{function.__name__}", "kwargs": kwargs}
         self._requests.write((json.dumps(request) + "\n").encode())
         self._requests.flush()
-        self._answer(timeout_s, f"{function.__name__}")
-        result = json.loads((self.exchange / f"{request_id}.json").read_text())
+        result = self._answer(timeout_s, f"{function.__name__}")
+        assert result["id"] == request_id, (result["id"], request_id)
         print(
             f"--- {self.mode} kernel {self.release}, {function.__name__} ({result['seconds']} s):"
         )
@@ -230,18 +243,11 @@ def choose() -> tuple[str, str]:
     return "", "no kernel with SocketCAN to test on (" + "; ".join(reasons) + f"); {INSTALL}"
 
 
-def boot(mode: str, exchange: Path) -> Kernel:
-    """Start the agent on a kernel (``mode`` from :func:`choose`); answers go to ``exchange``.
-
-    Raises:
-        GuestError: the agent did not start (the console says why).
-    """
-    exchange.mkdir(parents=True, exist_ok=True)
-    console = exchange / "console.log"
+def _environment(mode: str) -> dict[str, str]:
+    """What the agent (and the guest's PID 1) needs to know."""
     env = {
         "ESC_BRIDGE_ROOT": str(ROOT),
         "ESC_BRIDGE_PYTHON": sys.executable,
-        "ESC_BRIDGE_EXCHANGE": str(exchange),
         "ESC_BRIDGE_KERNEL": mode,
         "MAVLINK20": "1",
         # The host user's home: the guest finds the MAVLink dialect in its cache. And bytecode
@@ -252,45 +258,120 @@ def boot(mode: str, exchange: Path) -> Kernel:
     }
     if CACHE_ENV in os.environ:
         env[CACHE_ENV] = os.environ[CACHE_ENV]
+    return env
+
+
+def boot(mode: str, workdir: Path) -> Kernel:
+    """Start the agent on a kernel (``mode`` from :func:`choose`); its console log and UML's
+    files go to ``workdir``.
+
+    Raises:
+        GuestError: the agent did not start (the console says why).
+    """
+    workdir.mkdir(parents=True, exist_ok=True)
+    env = _environment(mode)
+    if mode != "host":
+        return _boot_uml(mode, INIT, env, workdir)
+    console = workdir / "console.log"
     with console.open("wb") as log:
-        if mode == "host":
-            process = subprocess.Popen(
-                [sys.executable, "-m", "linux.agent"],
-                cwd=TESTS,
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=log,
-                env={**os.environ, **env},
-                start_new_session=True,
-            )
-            assert process.stdin is not None and process.stdout is not None
-            return Kernel(mode, process, process.stdin, process.stdout, exchange, console)
-        to_guest_r, to_guest_w = os.pipe()
-        from_guest_r, from_guest_w = os.pipe()
-        argv = [
-            "linux",
-            f"mem={UML_MEMORY}",
-            "rootfstype=hostfs",
-            "rootflags=/",
-            "rw",
-            f"init={INIT}",
-            "con=null",
-            "ssl=null",
-            # Its pid file and management socket: in the exchange directory, not ~/.uml.
-            f"uml_dir={exchange}",
-            "con0=fd:0,fd:1",
-            f"con1=fd:{to_guest_r},fd:{from_guest_w}",
-            *(f"{key}={value}" for key, value in env.items()),
-        ]
-        # UML backs the guest's memory with a file in TMPDIR: a tmpfs keeps it off the disk.
-        tmp = "/dev/shm" if os.path.isdir("/dev/shm") else os.environ.get("TMPDIR", "/tmp")
+        process = subprocess.Popen(
+            [sys.executable, "-m", "linux.agent"],
+            cwd=TESTS,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            env={**os.environ, **env},
+            start_new_session=True,
+        )
+    assert process.stdin is not None and process.stdout is not None
+    return Kernel(mode, process, process.stdin, process.stdout, workdir, console)
+
+
+def systemd_refusal() -> str:
+    """Why systemd cannot be booted in User-Mode Linux here ('' when it can)."""
+    refusal = uml_refusal()
+    if refusal:
+        return refusal
+    missing = _missing_tools({"useradd": "passwd", "pivot_root": "util-linux"})
+    if missing:
+        return f"missing {missing}"
+    for path, package in SYSTEMD_FILES.items():
+        if not Path(path).exists():
+            return f"no {path} ({package})"
+    if not list(UML_MODULES.glob("*/kernel/fs/overlayfs/overlay.ko")):
+        return f"no overlay module under {UML_MODULES} (user-mode-linux)"
+    return ""
+
+
+def boot_systemd(workdir: Path, config: str) -> Kernel:
+    """Boot systemd in User-Mode Linux on an overlay of the host's files, with esc-bridge
+    installed as docs/service.md says (``uml_systemd_init.sh``) and ``config`` as its
+    /etc/esc-bridge/config.toml; the agent runs as a service of its own, and powers the guest
+    off when :meth:`Kernel.close` closes its channel.
+
+    Raises:
+        GuestError: the agent did not start (the console says why).
+    """
+    setup = workdir / "setup"
+    setup.mkdir(parents=True, exist_ok=True)
+    (setup / "config.toml").write_text(config)
+    drop_in = _shown_again()
+    if drop_in:
+        (setup / "esc-bridge.service.d").mkdir(exist_ok=True)
+        (setup / "esc-bridge.service.d" / "shown-again.conf").write_text(drop_in)
+    env = {**_environment("uml-systemd"), "ESC_BRIDGE_SETUP": str(setup)}
+    return _boot_uml("uml-systemd", SYSTEMD_INIT, env, workdir, timeout_s=SYSTEMD_BOOT_TIMEOUT_S)
+
+
+def _shown_again() -> str:
+    """A drop-in for the unit: what the bridge runs from that its ProtectHome= or PrivateTmp=
+    hides, shown again read-only where it is ('' when nothing is hidden). On a vehicle the
+    venv's Python is /usr's and the checkout /opt/esc-bridge; here pyenv's Python may be in
+    /root, or a clone in /tmp. ``ProtectHome=tmpfs`` (an empty /root and /home, as ``true``
+    but passable) lets the service reach a path shown again under them."""
+    runs_from = (ROOT, Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve())
+    hidden = [p for p in runs_from if any(p.is_relative_to(top) for top in HIDDEN_BY_UNIT)]
+    hidden = [p for p in hidden if not any(p != q and p.is_relative_to(q) for q in hidden)]
+    if not hidden:
+        return ""
+    lines = ["[Service]"]
+    if any(p.is_relative_to("/root") or p.is_relative_to("/home") for p in hidden):
+        lines.append("ProtectHome=tmpfs")
+    lines += [f"BindReadOnlyPaths={p}" for p in dict.fromkeys(hidden)]
+    return "\n".join(lines) + "\n"
+
+
+def _boot_uml(
+    mode: str, init: Path, env: dict[str, str], workdir: Path, timeout_s: float = BOOT_TIMEOUT_S
+) -> Kernel:
+    console = workdir / "console.log"
+    to_guest_r, to_guest_w = os.pipe()
+    from_guest_r, from_guest_w = os.pipe()
+    argv = [
+        "linux",
+        f"mem={UML_MEMORY}",
+        "rootfstype=hostfs",
+        "rootflags=/",
+        "rw",
+        f"init={init}",
+        "con=null",
+        "ssl=null",
+        # Its pid file and management socket: in the work directory, not ~/.uml.
+        f"uml_dir={workdir}",
+        "con0=fd:0,fd:1",
+        f"con1=fd:{to_guest_r},fd:{from_guest_w}",
+        *(f"{key}={value}" for key, value in env.items()),
+    ]
+    # UML backs the guest's memory with a file in TMPDIR: a tmpfs keeps it off the disk.
+    tmp = "/dev/shm" if os.path.isdir("/dev/shm") else os.environ.get("TMPDIR", "/tmp")
+    with console.open("wb") as log:
         process = subprocess.Popen(
             argv,
             stdin=subprocess.DEVNULL,
             stdout=log,
             stderr=subprocess.STDOUT,
             pass_fds=(to_guest_r, from_guest_w),
-            env={"PATH": os.environ.get("PATH", ""), "HOME": str(exchange), "TMPDIR": tmp},
+            env={"PATH": os.environ.get("PATH", ""), "HOME": str(workdir), "TMPDIR": tmp},
             start_new_session=True,
         )
     os.close(to_guest_r)
@@ -298,7 +379,7 @@ def boot(mode: str, exchange: Path) -> Kernel:
     requests = os.fdopen(to_guest_w, "wb")
     answers = os.fdopen(from_guest_r, "rb")
     try:
-        return Kernel(mode, process, requests, answers, exchange, console)
+        return Kernel(mode, process, requests, answers, workdir, console, timeout_s)
     except BaseException:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(process.pid, signal.SIGKILL)

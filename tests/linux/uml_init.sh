@@ -20,6 +20,6 @@ done
 insmod "$modules/drivers/net/can/vcan.ko" echo=1 || echo "uml_init: insmod vcan failed"
 ip link set lo up
 cd "$ESC_BRIDGE_ROOT/tests" || poweroff -f
-"$ESC_BRIDGE_PYTHON" -m linux.agent </dev/tty1 >/dev/tty1 2>"$ESC_BRIDGE_EXCHANGE/agent.err"
+"$ESC_BRIDGE_PYTHON" -m linux.agent </dev/tty1 >/dev/tty1
 echo "uml_init: the agent exited with status $?"
 poweroff -f
