@@ -35,6 +35,7 @@ MODE = os.environ.get("ESC_BRIDGE_KERNEL", "host")
 ``host`` (the host's kernel: interfaces get names of their own, and are removed after)."""
 
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
+CANDUMP_BUFFER_BYTES = 8 << 20
 CANDUMP_LINE = re.compile(r"\((?P<time>\d+\.\d+)\) (?P<channel>\S+) (?P<frame>\S+)")
 
 
@@ -261,13 +262,21 @@ def candump_message(line: str) -> tuple[float, can.Message]:
 
 class Candump:
     """``candump -L`` on an interface: every frame with the kernel's receive time, the
-    observer that is not the bridge. Returns once its socket receives (an interpreter's start
-    and candump's own take seconds in a guest on a loaded host)."""
+    observer that is not the bridge. Its socket has a large receive buffer (a guest on a loaded
+    host holds candump off for a while; with the default buffer it lost frames under a flood),
+    and it reports what it lost all the same (:meth:`drops`). Returns once its socket receives
+    (an interpreter's start and candump's own take seconds in a guest on a loaded host)."""
 
     def __init__(self, channel: str, *options: str, timeout_s: float = 60.0) -> None:
         before = len(receivers(channel))
-        self.process = start(["candump", "-L", *options, channel], f"candump-{channel}")
+        argv = ["candump", "-L", "-d", "-r", str(CANDUMP_BUFFER_BYTES), *options, channel]
+        self.process = start(argv, f"candump-{channel}")
         wait_until(lambda: len(receivers(channel)) > before, timeout_s, "candump's socket")
+
+    def drops(self) -> int:
+        """The frames candump's socket dropped so far (its receive buffer overflowed)."""
+        totals = re.findall(r"total drops (\d+)", self.process.output())
+        return int(totals[-1]) if totals else 0
 
     def lines(self) -> list[str]:
         """The ``candump -L`` lines so far (whole lines only)."""

@@ -19,6 +19,9 @@ for module in net/can/can net/can/can-raw net/can/can-bcm drivers/net/can/dev/ca
 done
 insmod "$modules/drivers/net/can/vcan.ko" echo=1 || echo "uml_init: insmod vcan failed"
 ip link set lo up
+# Receive buffers as large as a socket asks for (candump's 8 MiB, the bridge's reader's 4 MiB):
+# the guest stands still while the host runs others, and frames queue meanwhile.
+echo 16777216 >/proc/sys/net/core/rmem_max
 cd "$ESC_BRIDGE_ROOT/tests" || poweroff -f
 "$ESC_BRIDGE_PYTHON" -m linux.agent </dev/tty1 >/dev/tty1
 echo "uml_init: the agent exited with status $?"
