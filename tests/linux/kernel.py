@@ -225,9 +225,7 @@ def uml_refusal() -> str:
 def choose() -> tuple[str, str]:
     """(mode, '') for the kernel to use, or ('', why none can be: the reason to skip)."""
     asked = os.environ.get(MODE_ENV, "auto")
-    if asked == "off":
-        return "", f"{MODE_ENV}=off"
-    reasons = []
+    reasons = [f"{MODE_ENV}=off"] if asked == "off" else []
     if asked in ("auto", "host"):
         refusal = host_vcan_refusal()
         if not refusal:
@@ -238,7 +236,7 @@ def choose() -> tuple[str, str]:
         if not refusal:
             return "uml", ""
         reasons.append(f"User-Mode Linux: {refusal}")
-    if asked not in ("auto", "host", "uml"):
+    if asked not in ("auto", "host", "uml", "off"):
         reasons.append(f"{MODE_ENV}={asked!r}: expected auto, host, uml or off")
     return "", "no kernel with SocketCAN to test on (" + "; ".join(reasons) + f"); {INSTALL}"
 
@@ -288,7 +286,16 @@ def boot(mode: str, workdir: Path) -> Kernel:
 
 
 def systemd_refusal() -> str:
-    """Why systemd cannot be booted in User-Mode Linux here ('' when it can)."""
+    """Why systemd cannot be booted in User-Mode Linux here ('' when it can), with the install
+    line."""
+    asked = os.environ.get(MODE_ENV, "auto")
+    if asked not in ("auto", "uml"):
+        return f"{MODE_ENV}={asked} (systemd runs in User-Mode Linux only); {INSTALL}"
+    refusal = _systemd_refusal()
+    return f"{refusal}; {INSTALL}" if refusal else ""
+
+
+def _systemd_refusal() -> str:
     refusal = uml_refusal()
     if refusal:
         return refusal
