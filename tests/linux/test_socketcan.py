@@ -11,6 +11,10 @@ of its own: the rate, the values (under the flood too: no false failsafe), the t
 the failsafe, the stop flush, the receivers the bridge registered (exactly the reader's filters,
 as the production code derives them for the configuration; none for the output loop), and
 that the flood reached none of them.
+
+First, the harness itself (one kernel holds this file, so the harness costs no boot of its
+own): a call runs where the kernel is, on a vcan of its own, and a failure comes back with the
+guest's log.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import datetime
 import itertools
+import platform
 import signal
 import statistics
 import time
@@ -42,7 +47,7 @@ from bridge.escs.ft.keys import FtKeys
 from bridge.telemetry.for_config import esc_table
 from bridge.telemetry.reader import reader_filters
 from linux import guest
-from linux.kernel import Kernel
+from linux.kernel import GuestError, Kernel
 
 PWM = [1100, 1350, 1600, 1850]  # four outputs, four values: a swapped channel cannot pass
 FLOOD_FRAMES = 500  # armed, under cangen's flood of foreign IDs
@@ -53,6 +58,43 @@ STALE_FOR_S = 2.0
 RESUMED_FOR_S = 1.0
 AUTOPILOT_HZ = 20  # SERVO_OUTPUT_RAW (the bridge arms on 2 Hz at its 1 s input timeout)
 START_TIMEOUT_S = 120.0  # the bridge's start in a one-CPU guest beside a loaded host
+
+
+# -- the harness itself ------------------------------------------------------------------------
+
+
+def frames_through_vcan(count: int) -> dict[str, object]:
+    channel = guest.vcan()
+    dump = guest.Candump(channel)
+    for i in range(count):
+        guest.cansend(channel, f"1{i:02X}#{i:02X}")
+    guest.wait_until(lambda: len(dump.frames()) == count, 10, f"{count} frames")
+    return {
+        "release": platform.release(),
+        "channel": channel,
+        "frames": [f for _, f in dump.frames()],
+    }
+
+
+def fails_with_a_log() -> None:
+    guest.run(["ip", "link", "show", "no-such-interface"])
+
+
+def test_a_call_sends_frames_through_a_vcan(linux: Kernel) -> None:
+    result = linux.call(frames_through_vcan, count=3)
+    assert result["frames"] == ["100#00", "101#01", "102#02"]
+    if linux.mode == "uml":
+        assert result["release"] == linux.release != platform.release()
+
+
+def test_a_failing_call_says_what_it_ran(linux: Kernel) -> None:
+    with pytest.raises(GuestError) as failure:
+        linux.call(fails_with_a_log)
+    assert "CalledProcessError" in str(failure.value)
+    assert "ip link show no-such-interface" in str(failure.value)
+
+
+# -- every family, one flight each -------------------------------------------------------------
 
 
 def fly(config: str, pwm: list[int]) -> dict[str, Any]:
