@@ -57,5 +57,7 @@ def test_the_new_warnings_are_explained() -> None:
         "nothing answered",
         "not a frame",
         "output loop runs WITHOUT real-time priority",
+        "frames claiming to be the autopilot",
+        "now speaks from",
     ):
         assert start in quoted, start

@@ -1,16 +1,20 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
-with it and hands the family's neutral telemetry, or the commands it read back, to the state.
+with it and hands the family's neutral telemetry to the state. The bridge's own commands are
+not read back: the output loop says what it sent (:mod:`bridge.daemon.commands_sent`).
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
 udp_multicast another handle of the same bus sees them), since the recording wants every
-frame; otherwise only our ESCs' telemetry, plus the bridge's commands while a feature reads
-them back. :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs either
-way. A malformed frame is counted against the ESC its ID names and dropped; nothing that
-arrives stops the reader. Frames the kernel dropped because the reader fell behind are
-counted too (:attr:`ReaderStats.kernel_drops`).
+frame; otherwise only our ESCs' telemetry. :class:`~bridge.telemetry.state.EscTable` keeps only
+telemetry from our ESCs either way. A malformed frame is counted against the ESC its ID names
+and dropped; nothing that arrives stops the reader. Frames the kernel dropped because the reader
+fell behind are counted too (:attr:`ReaderStats.kernel_drops`).
+
+With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
+frame, the ESC's state after it (the commands reach it from
+:class:`~bridge.daemon.commands_sent.CommandsSent`).
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import can
 from can.typechecking import CanFilter
@@ -27,7 +32,7 @@ from can.typechecking import CanFilter
 from bridge.can_io import receive_drops
 from bridge.errors import CodecError
 from bridge.escs.family import EscFamily
-from bridge.telemetry.state import EscTable
+from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +42,18 @@ JOIN_TIMEOUT_S = 2.0
 DROPS_SAMPLE_PERIOD_NS = 1_000_000_000
 
 Recorder = Callable[[can.Message], None]
+"""Takes every frame read (the candump log)."""
+
+
+class StateRecorder(Protocol):
+    """Takes the ESC state's changes as they happen (the MCAP recording). Called on the thread
+    that feeds the ESC state: keep it short (an append)."""
+
+    def esc(self, snapshot: EscSnapshot, time_s: float) -> None:
+        """An ESC's state right after a telemetry frame that arrived at ``time_s`` (wall)."""
+
+    def commands(self, commands: Sequence[LastCommand], time_s: float) -> None:
+        """Every ESC's last command, right after commands sent at ``time_s`` (wall) were taken."""
 
 
 @dataclass
@@ -59,19 +76,19 @@ class ReaderStats:
 
 
 def reader_filters(
-    family: EscFamily, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
+    family: EscFamily, esc_ids: Collection[int], *, recording: bool
 ) -> list[CanFilter] | None:
     """The filters for the reader's own bus handle: None (every frame) when ``recording``,
-    since the recording wants every frame; else our ESCs' telemetry, plus the bridge's own
-    commands with ``read_back_commands`` (the ESC state's ``command`` for the actuators/output
-    key). See the family's :meth:`~bridge.escs.family.EscFamily.reader_filters`.
+    since the recording wants every frame; else our ESCs' telemetry only (the bridge's own
+    commands come from the output loop: :mod:`bridge.daemon.commands_sent`). See the family's
+    :meth:`~bridge.escs.family.EscFamily.reader_filters`.
 
     Raises:
         ValueRangeError: an ESC ID the protocol cannot have.
     """
     if recording:
         return None
-    return family.reader_filters(esc_ids, read_back_commands)
+    return family.reader_filters(esc_ids, False)
 
 
 class CanReader:
@@ -97,11 +114,14 @@ class CanReader:
         table: EscTable,
         family: EscFamily,
         recorder: Recorder | None = None,
+        states: StateRecorder | None = None,
     ) -> None:
+        """``recorder`` takes every frame read, ``states`` the ESC state's changes."""
         self._bus_source = bus if callable(bus) else lambda: bus
         self._table = table
         self._family = family
         self._recorder = recorder
+        self._states = states
         self.stats = ReaderStats()
         # Drops of handles the reader read before the current one (a reopened shared handle
         # starts counting from 0 again), and the current handle's last count.
@@ -171,7 +191,10 @@ class CanReader:
         if frame is None:
             return
         telemetry = family.telemetry(frame)
-        if telemetry is None:
-            self._table.note_commands(family.commands_seen(frame))
-        elif self._table.ingest(telemetry, now_ns):
+        states = self._states
+        if telemetry is not None and self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
+            if states is not None:
+                snapshot = self._table.snapshot_of(telemetry.node_id, now_ns)
+                if snapshot is not None:
+                    states.esc(snapshot, msg.timestamp or time.time())

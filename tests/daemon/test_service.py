@@ -304,7 +304,7 @@ def test_the_pages_recording_drop_in_records_into_logs_directory(work: Path) -> 
     cached = list((work / "var-cache" / one("CacheDirectory") / "mavlink").glob("esc_bridge-*.py"))
     assert len(cached) == 1 and cached[0].stat().st_uid == uid, cached
     recorded = sorted(p.suffix for p in (work / "var-log" / one("LogsDirectory")).iterdir())
-    assert recorded == [".log", ".tlog"], recorded
+    assert recorded == [".log", ".mcap", ".tlog"], recorded
 
 
 def test_the_page_shows_the_units_lines() -> None:

@@ -438,14 +438,13 @@ def test_sigterm_flushes_safe_values_last_and_exits_zero(flight: Flight) -> None
 
 def test_the_kernel_holds_exactly_the_readers_filters(flight: Flight) -> None:
     """/proc/net/can: the bridge's sockets hold the filters the production code derives for
-    this configuration (the reader's, with its read-back of the bridge's own commands), all on
-    one socket (the reader's), plus the error-frame receiver python-can gives every handle it
-    opens: the output loop's transmit-only handle registers nothing."""
+    this configuration (the reader's: its ESCs' telemetry), all on one socket (the reader's),
+    plus the error-frame receiver python-can gives every handle it opens: the output loop's
+    transmit-only handle registers nothing. And none of them passes a frame the bridge sent: its
+    own commands are never read back (the loop says what it sent, through shared memory)."""
     config = flight.family.bridge_config
     family = registry.family(config.output.protocol)
-    filters = reader_filters(
-        family, esc_table(config).node_ids, recording=False, read_back_commands=True
-    )
+    filters = reader_filters(family, esc_table(config).node_ids, recording=False)
     assert filters is not None  # None is "every frame", for a recording
     want = sorted(kernel_receiver(f) for f in filters)
     held = flight.bridges_receivers()
@@ -453,11 +452,16 @@ def test_the_kernel_holds_exactly_the_readers_filters(flight: Flight) -> None:
     assert [r for r in got if r[0] != "err"] == want
     assert [r[0] for r in got if r[0] == "err"] == ["err"]
     assert len({row["owner"] for row in held}) == 1, held
+    read = flight.family.read()
+    sent = [msg for _, msg in flight.frames if read(msg) is not None]
+    assert sent, "no command on the bus"
+    fil = flight.readers_filters("with_bridge")
+    assert not [msg for msg in sent if any(passes(r, msg) for r in fil)]
 
 
 def test_a_flood_of_foreign_ids_reaches_none_of_the_readers_filters(flight: Flight) -> None:
     """cangen's random extended IDs: each of the reader's filters passed what it passes without
-    them (the ESCs' telemetry and the bridge's commands), and of the flood only the frames
+    them (the ESCs' telemetry), and of the flood only the frames
     whose random ID happened to be one of those (none, but for a one-in-a-million ID)."""
     assert flight.result["candump_drops"] == 0, "candump lost frames: the counts cannot be told"
     fil = flight.readers_filters("before_flood")
