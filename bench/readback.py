@@ -1,14 +1,18 @@
-"""What reading the bridge's own commands back costs the CAN reader, on a real kernel's vcan.
+"""What the bridge's own commands would cost the CAN reader, passing its filters, on a real vcan.
 
 Run: ``python bench/readback.py [--runs 5] [--seconds 10] [--rate 400] [--kernel auto]``
 
-On SocketCAN the reader's kernel filters decide what wakes it. With read-back they pass the
-bridge's own command frames too (the ESC state's ``command`` for the actuators/output key
-comes from them), without it only the ESCs' telemetry. This runs the production reader
-(``CanReader`` on a kernel-filtered handle, in a process of its own: ``bench/_readback.py``)
-both ways against the same traffic: the simulated ESCs' telemetry (``esc-bridge sim``, CKESC
-quad) and the commands at ``--rate`` (``cangen`` repeating the driver's frames), and prints
-the reader's CPU (user + system, % of one core) and the frames it read, medians over
+On SocketCAN the reader's kernel filters decide what wakes it. The bridge never reads its own
+commands back: the output loop says what it sent through shared memory
+(``bridge/daemon/commands_sent.py``), and the reader's filters pass only the ESCs' telemetry.
+Only a recording (``--record``) opens the reader to every frame, the commands among them, since
+its candump log wants the whole bus. This runs the production reader (``CanReader`` on a
+kernel-filtered handle, in a process of its own: ``bench/_readback.py``) both ways against the
+same bus, which carries the commands of a CKESC quad at ``--rate`` (``cangen`` repeating the
+driver's frames; the ESCs' telemetry would cost both ways the same, and is left out): with the
+family's telemetry filters (what the bridge runs), and with the command IDs passing beside them
+(what reading them back cost before, and what a recording's reader pays for them). It prints the
+reader's CPU (user + system, % of one core), the frames it read and the difference, medians over
 ``--runs`` runs of each (alternating, so a change of load beside it hits both).
 
 Where: the host's own kernel where it can make a vcan (root and the vcan module: a Linux
@@ -35,13 +39,16 @@ from _readback import measure
 from linux.kernel import MODE_ENV, boot, choose
 
 
+def cpu_percent(run: dict[str, Any]) -> float:
+    return 100 * float(run["cpu_s"]) / float(run["seconds"])
+
+
 def row(name: str, runs: list[dict[str, Any]]) -> str:
-    cpu = [100 * r["cpu_s"] / r["seconds"] for r in runs]
+    cpu = [cpu_percent(r) for r in runs]
     rate = [r["frames"] / r["seconds"] for r in runs]
-    per_frame = [1e6 * r["cpu_s"] / r["frames"] for r in runs if r["frames"]]
     return (
         f"| {name} | {statistics.median(cpu):.2f} ({min(cpu):.2f}-{max(cpu):.2f}) "
-        f"| {statistics.median(rate):.0f} | {statistics.median(per_frame):.0f} |"
+        f"| {statistics.median(rate):.0f} |"
     )
 
 
@@ -76,13 +83,26 @@ def main() -> None:
     load = os.getloadavg()[0]
     where = "the host's kernel" if mode == "host" else f"User-Mode Linux {kernel.release}"
     print(
-        f"CAN reader, CKESC quad at {args.rate} Hz with simulated telemetry; {where}; "
+        f"CAN reader, CKESC quad's commands at {args.rate} Hz on the bus; {where}; "
         f"{args.runs} runs of {args.seconds:.0f} s each way; load {load:.1f} at the end"
     )
-    print("| reader | CPU, % of a core: median (min-max) | frames read/s | CPU per frame, µs |")
-    print("| --- | --- | --- | --- |")
-    print(row("telemetry only", [r for r in results if not r["read_back"]]))
-    print(row("telemetry + own commands (read-back)", [r for r in results if r["read_back"]]))
+    without = [r for r in results if not r["read_back"]]
+    with_read_back = [r for r in results if r["read_back"]]
+    print("| reader's filters | CPU, % of a core: median (least-most) | frames read/s |")
+    print("| --- | --- | --- |")
+    print(row("the ESCs' telemetry (the bridge)", without))
+    print(row("the ESCs' telemetry and the bridge's commands", with_read_back))
+    # Each run of one way against the run of the other beside it.
+    extra = [cpu_percent(a) - cpu_percent(b) for a, b in zip(with_read_back, without, strict=True)]
+    frames = [a["frames"] / a["seconds"] for a in with_read_back]
+    per_frame = [
+        1e4 * e / f for e, f in zip(extra, frames, strict=True) if f
+    ]  # % of a core per frame/s -> µs per frame
+    print(
+        f"the commands passing: +{statistics.median(extra):.2f} % of a core "
+        f"(median of {len(extra)} pairs), "
+        f"{statistics.median(per_frame):.0f} µs per command frame read"
+    )
 
 
 if __name__ == "__main__":
