@@ -236,6 +236,10 @@ class Supervisor:
             self._absence = AbsenceWatch(config, time.monotonic_ns(), log.log)
             while not self._stop.is_set():
                 if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
+                    if self._stop.is_set() and LoopState(self.stats["state"]) == LoopState.STOPPED:
+                        # Asked to stop during the wait (the signal handler ran inside it), and
+                        # the loop ended after its own flush: a stop, not a death.
+                        break
                     return self._loop_died()
                 self._watch()
             self._log_stop_reason()
