@@ -295,16 +295,21 @@ class Candump:
 
 class Autopilot(conftest.Autopilot):
     """conftest's pymavlink autopilot (HEARTBEAT and SERVO_OUTPUT_RAW on loopback UDP), noting
-    when it sent each output (``time.time()``, the clock candump's stamps are on): where the
-    guest stood still, the input was stale by the bridge's rules too."""
+    when it produced each output (``time.time()``, the clock candump's stamps are on, read with
+    the time_usec it stamps): where the guest stood still, the input was stale by the bridge's
+    rules too. The stamp, not the send: the bridge dates an output by its time_usec, and a
+    guest that stalls between the two makes the frame older than its send."""
 
     def __init__(self, port: int, **kwargs: Any) -> None:
         super().__init__(port, **kwargs)
         self.sent: list[float] = []
 
-    def servo_output_raw(self, pwm: list[int]) -> None:
-        super().servo_output_raw(pwm)
-        self.sent.append(time.time())
+    def servo_output_raw(self, pwm: list[int], time_us: int | None = None) -> None:
+        produced_s = time.time()
+        if time_us is None:
+            time_us = int(time.monotonic() * 1e6)
+        super().servo_output_raw(pwm, time_us)
+        self.sent.append(produced_s)
 
 
 class MavlinkWatch:
