@@ -295,14 +295,17 @@ class Candump:
 
 class Autopilot(conftest.Autopilot):
     """conftest's pymavlink autopilot (HEARTBEAT and SERVO_OUTPUT_RAW on loopback UDP), noting
-    when it produced each output (``time.time()``, the clock candump's stamps are on, read with
-    the time_usec it stamps): where the guest stood still, the input was stale by the bridge's
-    rules too. The stamp, not the send: the bridge dates an output by its time_usec, and a
-    guest that stalls between the two makes the frame older than its send."""
+    when it produced each output (:attr:`sent`) and when its send returned (:attr:`delivered`),
+    on ``time.time()``, the clock candump's stamps are on: where the guest stood still, the
+    input was stale by the bridge's rules too. Both, since a guest may stall between the two:
+    the bridge dates an output by its time_usec (the stamp), and has it once it is sent."""
 
     def __init__(self, port: int, **kwargs: Any) -> None:
         super().__init__(port, **kwargs)
         self.sent: list[float] = []
+        """When each output was stamped (read with its time_usec)."""
+        self.delivered: list[float] = []
+        """When each output's send returned: in the bridge's socket from then on."""
 
     def servo_output_raw(self, pwm: list[int], time_us: int | None = None) -> None:
         produced_s = time.time()
@@ -310,6 +313,7 @@ class Autopilot(conftest.Autopilot):
             time_us = int(time.monotonic() * 1e6)
         super().servo_output_raw(pwm, time_us)
         self.sent.append(produced_s)
+        self.delivered.append(time.time())
 
 
 class MavlinkWatch:

@@ -162,6 +162,7 @@ def fly(config: str, pwm: list[int]) -> dict[str, Any]:
         "exit": code,
         "output": bridge.output(),
         "sent": pilot.sent,
+        "delivered": pilot.delivered,
         "status": {
             "rpm": list(status.rpm),
             "voltage": list(status.voltage),
@@ -328,11 +329,18 @@ class Flight:
         return [(t, c) for t, c in self.commands if self.marks[start] <= t < self.marks[end]]
 
     def input_stale_at(self, t: float) -> bool:
-        """Whether the autopilot's last output before ``t`` was older than the input timeout
-        (less 5 %: the bridge dates an input by the autopilot's clock, mapped onto its own)."""
-        sent = [s for s in self.result["sent"] if s < t]
+        """Whether the newest output the bridge could have had at the tick that sent the frame
+        candump saw at ``t`` was older than the input timeout (less 5 %: the bridge dates an
+        input by the autopilot's clock, mapped onto its own). Had: delivered a loop period
+        before ``t`` (the tick decides before its frame reaches candump)."""
+        period_s = 1 / self.family.bridge_config.rate_hz
+        had = [
+            s
+            for s, d in zip(self.result["sent"], self.result["delivered"], strict=True)
+            if d < t - period_s
+        ]
         timeout_s = self.family.bridge_config.output.input_timeout_ms / 1000
-        return not sent or t - sent[-1] > 0.95 * timeout_s
+        return not had or t - had[-1] > 0.95 * timeout_s
 
     def sent_gaps(self) -> list[tuple[float, float]]:
         """The autopilot's gaps between outputs over 0.2 s: (when, how long)."""
