@@ -170,12 +170,13 @@ class Autopilot:
             mavutil.mavlink.MAV_STATE_ACTIVE,
         )
 
-    def servo_output_raw(self, pwm: list[int]) -> None:
+    def servo_output_raw(self, pwm: list[int], time_us: int | None = None) -> None:
+        """``time_us``: its time_usec (default: now, on the monotonic clock)."""
         values = (list(pwm) + [0] * 16)[:16]
         extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}  # MAVLink 2 only
-        self.mav.servo_output_raw_send(
-            int(time.monotonic() * 1e6) & 0xFFFFFFFF, 0, *values[:8], **extensions
-        )
+        if time_us is None:
+            time_us = int(time.monotonic() * 1e6)
+        self.mav.servo_output_raw_send(time_us & 0xFFFFFFFF, 0, *values[:8], **extensions)
 
     def start_stream(self, rate_hz: float = 50.0) -> None:
         """Send HEARTBEAT at 10 Hz and SERVO_OUTPUT_RAW of ``self.pwm`` at ``rate_hz``."""
@@ -197,6 +198,9 @@ class Autopilot:
 
     def pause_outputs(self) -> None:
         self._streaming.clear()
+
+    def resume_outputs(self) -> None:
+        self._streaming.set()
 
     def close(self) -> None:
         self._stop.set()
