@@ -41,6 +41,21 @@ TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
 Receive = Literal["all", "telemetry", "none"]
 """What a bus handle receives: every frame, the frames its filters pass, or nothing."""
 
+
+class _QuietOpens(logging.Filter):
+    """Drops python-can's lines about each SocketCAN open: "Created a socket" (INFO) and "Could
+    not access SocketCAN device" (ERROR, a bind that failed). The output loop reopens a bus
+    that is gone, every few seconds for as long as it stays gone, and the bridge says itself,
+    once, what is wrong (:class:`~bridge.errors.LinkError`, the bus's state reports)."""
+
+    _TEMPLATES: Final = frozenset({"Created a socket", "Could not access SocketCAN device %s (%s)"})
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.msg not in self._TEMPLATES
+
+
+logging.getLogger("can.interfaces.socketcan.socketcan").addFilter(_QuietOpens())
+
 # -- the socket options python-can does not set for us (Linux) --------------------------------
 
 _SO_MEMINFO: Final = 55  # asm-generic/socket.h (x86, arm, arm64); Python has no constant
