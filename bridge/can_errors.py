@@ -155,7 +155,7 @@ class ErrorFrame:
         return text
 
 
-def decode_error_frame(classes: int, data: bytes) -> ErrorFrame:
+def decode_error_frame(classes: int, data: bytes | bytearray) -> ErrorFrame:
     """Read an error frame: ``classes`` is its ID (``CAN_ERR_FLAG`` and any frame-format flags
     are masked off), ``data`` its data bytes (fewer than eight are read as zeros, as a driver
     leaves the bytes it does not fill).

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
 from bridge.daemon.absence import AbsenceWatch, EscsHeard
+from bridge.daemon.bus_reports import BusWatch
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.daemon.motor_test_control import MotorTestControl
@@ -45,6 +46,7 @@ from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
 from bridge.output.motor_test import limits_for
 from bridge.output.output_loop import LoopSetup
 from bridge.output.safety import LoopState
+from bridge.output.transmit import TxState
 from bridge.stopping import StopSignals
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
@@ -124,6 +126,7 @@ class Supervisor:
         self.health_report.fanout = self.fanout
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
+        self._bus_watch = BusWatch(self._report)
         self._reported_state = LoopState.STARTING
         self._stop_reason = ""
         self._entered = [0] * len(LoopState)
@@ -242,6 +245,7 @@ class Supervisor:
             )
         self.health_report.sample()
         self._report_states()
+        self._bus_watch.check(now_ns, stats, None if reader is None else reader.stats)
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]
         if tick_errors != self._tick_errors:
@@ -250,7 +254,10 @@ class Supervisor:
             self._tick_errors = tick_errors
         errors = stats["send_errors"]
         now = time.monotonic()
-        if errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
+        if stats["tx_state"] != TxState.MOVING:
+            # Reported once as the bus's state (BusWatch): not every second as well.
+            self._last_errors = errors
+        elif errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
             log.warning(
                 "CAN send failures: %d since the last report (%d in all; bus reopened %d times)",
                 errors - self._last_errors,
@@ -288,12 +295,13 @@ class Supervisor:
             return lateness[min(len(lateness) - 1, int(fraction * len(lateness)))]
 
         log.info(
-            "output loop: %d ticks, %d frames, %d send errors, %d overruns, %d immediate "
-            "sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, p99 %d µs, "
-            "max %d µs (last %d ticks)",
+            "output loop: %d ticks, %d frames, %d send errors, %d ticks held back, %d overruns, "
+            "%d immediate sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, "
+            "p99 %d µs, max %d µs (last %d ticks)",
             stats["ticks"],
             stats["frames_sent"],
             stats["send_errors"],
+            stats["ticks_held"],
             stats["overruns"],
             stats["immediate_sends"],
             stats["tick_errors"],
@@ -310,20 +318,22 @@ class Supervisor:
             return
         stats = reader.stats
         log.info(
-            "CAN in: %d frames read, %d telemetry, %d malformed, %d read errors; "
-            "%d of %d ESCs online; %s dropped by the kernel",
+            "CAN in: %d frames read, %d telemetry, %d malformed, %d error frames, %d read "
+            "errors; %d of %d ESCs online; %s dropped by the kernel",
             stats.frames,
             stats.telemetry,
             stats.malformed,
+            stats.controller.frames,
             stats.read_errors,
             sum(1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online),
             len(self.fanout.table),
             "?" if stats.kernel_drops is None else stats.kernel_drops,
         )
 
-    def _report(self, severity: int, text: str) -> None:
+    def _report(self, severity: int, text: str, detail: str = "") -> None:
+        """``text`` in the log (with ``detail`` after it) and as a STATUSTEXT."""
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO
-        log.log(level, "%s", text)
+        log.log(level, "%s%s", text, f": {detail}" if detail else "")
         self.link.statustext(severity, text)
 
 

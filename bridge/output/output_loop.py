@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import can
 
+from bridge.backoff import Backoff
 from bridge.can_io import Receive, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
@@ -212,7 +213,7 @@ class OutputLoop:
         # the bus is reported stuck: as long as the bridge would call its own input stale.
         self._stuck_after_ns = config.output.input_timeout_ms * 1_000_000
         self._reopen_at_ns = 0
-        self._backoff_s = REOPEN_BACKOFF_S[0]
+        self._backoff = Backoff(*REOPEN_BACKOFF_S)
         # The counts of the transmitters before the current one (a reopen starts a new one).
         self._tx_before = self._held_before = self._probes_before = 0
         # The tick's state: its number, the last one's time, the newest motor test read, when
@@ -435,8 +436,8 @@ class OutputLoop:
         except BusGone:
             self._close_bus(now_ns)
             return 0
-        if sent and sent == len(frames):
-            self._backoff_s = REOPEN_BACKOFF_S[0]  # usable: a whole tick went out
+        if sent and sent == len(frames) and self._backoff.grown:
+            self._backoff.reset()  # usable: a whole tick went out
         return sent
 
     def _count_tx(self) -> None:
@@ -467,9 +468,7 @@ class OutputLoop:
         self._schedule_reopen(now_ns)
 
     def _schedule_reopen(self, now_ns: int) -> None:
-        wait_s = self._backoff_s * (0.5 + random.random())  # jitter: no lock-step retries
-        self._backoff_s = min(self._backoff_s * 2, REOPEN_BACKOFF_S[1])
-        self._reopen_at_ns = now_ns + int(wait_s * 1e9)
+        self._reopen_at_ns = now_ns + int(self._backoff.wait_s(random.random()) * 1e9)
 
     def _open_bus(self) -> can.BusABC:
         # explain=False: no `ip` process from the loop; preflight read the interface.
