@@ -193,6 +193,9 @@ class Autopilot:
     def pause_outputs(self) -> None:
         self._streaming.clear()
 
+    def resume_outputs(self) -> None:
+        self._streaming.set()
+
     def close(self) -> None:
         self._stop.set()
         if self._thread is not None:

@@ -56,7 +56,11 @@ log = logging.getLogger(__name__)
 
 SUPERVISE_PERIOD_S = 0.1
 ERROR_LOG_INTERVAL_S = 1.0  # CAN send failures are summed and logged at most this often
-LOOP_START_TIMEOUT_S = 15.0  # a spawned interpreter imports the bridge before it reports
+# A spawned interpreter imports the bridge before it reports. That took over 15 s in User-Mode
+# Linux's one CPU beside a host at load 16 (tests/linux): a machine that slow would never start
+# the bridge with a shorter wait, since every restart waits as long again. Nothing is sent
+# meanwhile; the ESCs see no command, as before the start.
+LOOP_START_TIMEOUT_S = 60.0
 
 
 class Supervisor:

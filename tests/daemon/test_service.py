@@ -9,10 +9,11 @@ machine has no esc-bridge user, and creating one would outlast the test), and Ex
 ``/opt/esc-bridge/.venv/bin/esc-bridge`` and ``--config /etc/esc-bridge/config.toml`` become
 this checkout's venv and a test configuration on a udp_multicast bus of the test's own; every
 other word of ExecStart is used as written. The checkout, venv included, is read-only in the
-sandbox, as ``ProtectSystem=strict`` makes ``/opt/esc-bridge``. Where the venv's Python is
-installed under a home directory (pyenv: ``/root/.pyenv``), which ``ProtectHome=true`` hides,
-the sandbox shows that installation again, read-only, where it is: on a vehicle the venv's
-Python is the system's, in ``/usr``.
+sandbox, as ``ProtectSystem=strict`` makes ``/opt/esc-bridge``. What the bridge runs from that
+``ProtectHome=true`` and ``PrivateTmp=true`` hide (the venv's Python under a home directory, as
+pyenv's ``/root/.pyenv``; a checkout cloned into ``/tmp``), the sandbox shows again, read-only,
+where it is: on a vehicle the venv's Python is the system's, in ``/usr``, and the checkout is
+``/opt/esc-bridge``.
 
 Building the sandbox needs root (a mount namespace, another uid); elsewhere these tests skip,
 saying so. ``systemd-analyze verify`` needs only the program.
@@ -102,6 +103,14 @@ def one(key: str) -> str:
     return values[0]
 
 
+HIDDEN = ("/home", "/root", "/tmp", "/var/tmp")  # ProtectHome=true, PrivateTmp=true
+
+
+def hidden(path: Path) -> bool:
+    """Whether the unit's sandbox hides ``path``."""
+    return any(path.is_relative_to(top) for top in HIDDEN)
+
+
 def capabilities(line: str) -> str:
     """A unit's capability list as setpriv's: ``CAP_SYS_NICE`` -> ``+sys_nice``."""
     return ",".join(f"+{cap.lower().removeprefix('cap_')}" for cap in line.split())
@@ -170,13 +179,17 @@ class Sandbox:
         caps = capabilities(one("AmbientCapabilities"))
         bounding = capabilities(one("CapabilityBoundingSet"))
         groups = ",".join(str(grp.getgrnam(g).gr_gid) for g in one("SupplementaryGroups").split())
-        python = Path(sys.base_prefix).resolve()
-        python_home = next((h for h in ("/root", "/home") if python.is_relative_to(h)), None)
+        # What the bridge runs from that the sandbox hides (under /home, /root, /tmp or
+        # /var/tmp: a checkout cloned into /tmp, pyenv's Python in /root), shown again
+        # read-only where it is, as the system's Python and /opt/esc-bridge are on a vehicle.
+        runs_from = (ROOT, Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve())
+        shown = [path for path in runs_from if hidden(path)]
+        shown = [p for p in shown if not any(p != q and p.is_relative_to(q) for q in shown)]
         setup = [f"mount --bind {shlex.quote(str(self.work))} /mnt"]
         setup += [f"mount --bind {shlex.quote(host)} {inside}" for host, inside in self.mounts]
-        if python_home is not None:
-            (self.work / "python").mkdir()
-            setup.append(f"mount --bind {shlex.quote(str(python))} /mnt/python")
+        for number, path in enumerate(shown):
+            (self.work / f"shown-{number}").mkdir()
+            setup.append(f"mount --bind {shlex.quote(str(path))} /mnt/shown-{number}")
         setup += [
             "mount -o remount,bind,ro /",  # ProtectSystem=strict
             "mount -t tmpfs -o mode=1777 tmpfs /tmp",  # PrivateTmp=true
@@ -184,9 +197,9 @@ class Sandbox:
             "mount -t tmpfs -o mode=755 tmpfs /home",  # ProtectHome=true
             "mount -t tmpfs -o mode=755 tmpfs /root",
         ]
-        if python_home is not None:
-            quoted = shlex.quote(str(python))
-            setup += [f"mkdir -p {quoted}", f"mount --bind -o ro /mnt/python {quoted}"]
+        for number, path in enumerate(shown):
+            quoted = shlex.quote(str(path))
+            setup += [f"mkdir -p {quoted}", f"mount --bind -o ro /mnt/shown-{number} {quoted}"]
         setup += [
             "mount -o remount,ro /home",
             "mount -o remount,ro /root",

@@ -15,6 +15,7 @@ import contextlib
 import itertools
 import os
 import re
+import select
 import shutil
 import signal
 import subprocess
@@ -24,7 +25,9 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
+
+import conftest
 
 MODE = os.environ.get("ESC_BRIDGE_KERNEL", "host")
 """``uml`` inside User-Mode Linux (the guest's own kernel: any interface name is free), else
@@ -167,6 +170,17 @@ class Process:
         if self.running():
             self.proc.send_signal(sig)
 
+    def wait(self, timeout_s: float) -> int:
+        """Wait for the process to end by itself.
+
+        Raises:
+            AssertionError: it did not within ``timeout_s``.
+        """
+        try:
+            return self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{self.name} did not end within {timeout_s} s") from None
+
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> int:
         """Signal the process (a SIGKILL goes to its whole group) and wait for its exit."""
         if self.running():
@@ -250,6 +264,49 @@ class Candump:
         return self.lines()
 
 
+class Autopilot(conftest.Autopilot):
+    """conftest's pymavlink autopilot (HEARTBEAT and SERVO_OUTPUT_RAW on loopback UDP), noting
+    when it sent each output (``time.time()``, the clock candump's stamps are on): where the
+    guest stood still, the input was stale by the bridge's rules too."""
+
+    def __init__(self, port: int, **kwargs: Any) -> None:
+        super().__init__(port, **kwargs)
+        self.sent: list[float] = []
+
+    def servo_output_raw(self, pwm: list[int]) -> None:
+        super().servo_output_raw(pwm)
+        self.sent.append(time.time())
+
+
+class MavlinkWatch:
+    """What the bridge sends to a pymavlink connection (an autopilot's), decoded with the
+    project's dialect when asked: a select on its socket, no thread polling the guest's CPU."""
+
+    def __init__(self, conn: Any) -> None:
+        from bridge.mavlink import load_dialect
+
+        self._conn = conn
+        self._parser = load_dialect().MAVLink(None)
+        self._parser.robust_parsing = True
+
+    def wait_for(self, kind: str, predicate: Callable[[Any], bool], timeout_s: float) -> Any:
+        """The first ``kind`` message from now on that matches ``predicate``.
+
+        Raises:
+            AssertionError: none within ``timeout_s`` (naming the kinds that came).
+        """
+        deadline = time.monotonic() + timeout_s
+        seen: set[str] = set()
+        while (left := deadline - time.monotonic()) > 0:
+            if not select.select([self._conn.port.fileno()], [], [], left)[0]:
+                continue
+            for msg in self._parser.parse_buffer(self._conn.recv()) or []:
+                seen.add(msg.get_type())
+                if msg.get_type() == kind and predicate(msg):
+                    return msg
+        raise AssertionError(f"no matching {kind} within {timeout_s} s; saw {sorted(seen)}")
+
+
 def cansend(channel: str, frame: str) -> None:
     run(["cansend", channel, frame])
 
@@ -270,29 +327,38 @@ def netem_hold(channel: str, delay_ms: int) -> Iterator[None]:
         run(["tc", "qdisc", "del", "dev", channel, "root"], check=False)
 
 
-@dataclass(frozen=True)
-class Receiver:
-    """One row of /proc/net/can/rcvlist_*: a socket's filter on an interface."""
+RECEIVE_LISTS = (
+    "rcvlist_all",
+    "rcvlist_fil",
+    "rcvlist_inv",
+    "rcvlist_sff",
+    "rcvlist_eff",
+    "rcvlist_err",
+)
+"""The CAN core's receive lists (net/can/proc.c): catch-alls, filters, inverted filters, single
+standard and extended IDs (where the kernel files an exact-ID filter), error frames."""
 
-    device: str
-    can_id: int
-    can_mask: int
-    matches: int
-    ident: str
 
-
-def receivers(table: str = "rcvlist_fil", device: str | None = None) -> list[Receiver]:
-    """The CAN core's receive list ``table`` (``rcvlist_fil``: the sockets' filters; ``_all``,
-    ``_eff``, ``_sff``, ``_inv``, ``_err``), optionally of one device only."""
-    rows = []
-    for line in Path("/proc/net/can", table).read_text().splitlines():
-        fields = line.split()
-        # "  can0  0000000b  000000ff  0000000012345678  0000000012345678   1234  raw"
-        if len(fields) != 7 or not re.fullmatch(r"[0-9a-f]{3,8}", fields[1]):
-            continue
-        if device is None or fields[0] == device:
-            can_id, can_mask = int(fields[1], 16), int(fields[2], 16)
-            rows.append(Receiver(fields[0], can_id, can_mask, int(fields[5]), fields[6]))
+def receivers(device: str) -> list[dict[str, str | int]]:
+    """Every receiver the CAN core holds for ``device``: its list (``fil``, ``all``, ...), the
+    ``can_id`` and ``can_mask`` as the kernel keeps them, ``owner`` (the socket, as the kernel
+    prints its address) and ``matches`` (the frames it passed)."""
+    rows: list[dict[str, str | int]] = []
+    for table in RECEIVE_LISTS:
+        for line in Path("/proc/net/can", table).read_text().splitlines():
+            # "   can0  9f4e5200  9fffff00  000000006a1a8d3c  0000000062aa4180      1234  raw"
+            fields = line.split()
+            if len(fields) == 7 and fields[0] == device:
+                rows.append(
+                    {
+                        "list": table.removeprefix("rcvlist_"),
+                        "can_id": int(fields[1], 16),
+                        "can_mask": int(fields[2], 16),
+                        "owner": fields[4],
+                        "matches": int(fields[5]),
+                        "ident": fields[6],
+                    }
+                )
     return rows
 
 

@@ -45,6 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 TESTS = ROOT / "tests"
 INIT = Path(__file__).resolve().parent / "uml_init.sh"
 MODE_ENV = "ESC_BRIDGE_LINUX"
+CACHE_ENV = "ESC_BRIDGE_CACHE"
 INSTALL = "sudo apt-get install user-mode-linux can-utils kmod iproute2"
 UML_MODULES = Path("/usr/lib/uml/modules")
 # What the calls use, from which Debian package: the observers and injectors, the interfaces,
@@ -243,8 +244,14 @@ def boot(mode: str, exchange: Path) -> Kernel:
         "ESC_BRIDGE_EXCHANGE": str(exchange),
         "ESC_BRIDGE_KERNEL": mode,
         "MAVLINK20": "1",
-        "PYTHONDONTWRITEBYTECODE": "1",
+        # The host user's home: the guest finds the MAVLink dialect in its cache. And bytecode
+        # written (beside the sources, as Python does): without it each start in the guest
+        # compiles the 2 MB dialect again (5 s on the host, 40 000 page faults, each far
+        # dearer in User-Mode Linux).
+        "HOME": os.environ.get("HOME", "/root"),
     }
+    if CACHE_ENV in os.environ:
+        env[CACHE_ENV] = os.environ[CACHE_ENV]
     with console.open("wb") as log:
         if mode == "host":
             process = subprocess.Popen(
