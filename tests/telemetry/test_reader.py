@@ -29,10 +29,9 @@ def test_error_frames_fold_into_the_controller_not_into_malformed() -> None:
     reader.handle(_error(0x040), 2)
     stats = reader.stats
     assert (stats.frames, stats.malformed, stats.telemetry) == (2, 0, 0)
-    assert stats.controller.state == ControllerState.BUS_OFF
-    assert stats.controller.frames == 2
+    controller = stats.controller
+    assert (controller.state, controller.frames) == (ControllerState.BUS_OFF, 2)
     assert len(recorded) == 2  # the recording keeps them: candump logs error frames too
     # A frame of the bus again (an ESC's, garbage here: counted malformed as ever): not bus-off.
     reader.handle(can.Message(arbitration_id=0x1000, data=b"\x00"), 3)
-    assert stats.controller.state == ControllerState.ERROR_ACTIVE
-    assert stats.controller.entered == [1, 0, 1, 1]
+    assert (controller.state, controller.entered) == (ControllerState.ERROR_ACTIVE, [1, 0, 1, 1])
