@@ -174,6 +174,57 @@ def machine_busy_seconds() -> float:
     return (sum(fields[:8]) - fields[3] - fields[4]) / CLOCK_TICKS
 
 
+def set_fifo(priority: int) -> str | None:
+    """SCHED_FIFO at ``priority`` for this process; None if done, else why not."""
+    if priority <= 0:
+        return "not asked for (priority 0)"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return f"not permitted ({exc})"
+    return None
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and every live process under it (the daemon, its output loop, its helpers)."""
+    parents: dict[int, list[int]] = {}
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit() and (fields := stat_fields(int(entry.name))) is not None:
+            parents.setdefault(int(fields[1]), []).append(int(entry.name))
+    found, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        found.append(current)
+        todo.extend(parents.get(current, []))
+    return found
+
+
+def holds_bus(pid: int, port: int) -> bool:
+    """Whether ``pid`` or a process under it holds a UDP socket bound to ``port``."""
+    inodes = {inode for member in process_tree(pid) for inode in socket_inodes(member)}
+    return not inodes.isdisjoint(udp_sockets(port))
+
+
+def wait_for(
+    done: Any, timeout_s: float, what: str, daemon: subprocess.Popen[bytes], log_path: Path
+) -> None:
+    """Wait until ``done()``, or raise if the daemon exits or ``timeout_s`` passes first."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        if daemon.poll() is not None:
+            raise RuntimeError(
+                f"the bridge exited (code {daemon.returncode}) {what}:\n{log_tail(log_path)}"
+            )
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out {what}:\n{log_tail(log_path)}")
+        time.sleep(0.02)
+
+
+def sleep_watching(seconds: float, daemon: subprocess.Popen[bytes], log_path: Path) -> None:
+    end = time.monotonic() + seconds
+    wait_for(lambda: time.monotonic() >= end, seconds + 5.0, "during the run", daemon, log_path)
+
+
 # -- processes and reports ------------------------------------------------------------------
 
 

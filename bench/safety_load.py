@@ -69,16 +69,20 @@ from _common import (
     bridge_command,
     cpu_seconds,
     free_port,
+    holds_bus,
     ignore_sigint,
     log_tail,
     machine_busy_seconds,
     multicast_listener,
     num,
+    process_tree,
     processes,
     raise_interrupt,
     recv_stamped,
-    socket_inodes,
+    set_fifo,
+    sleep_watching,
     udp_sockets,
+    wait_for,
 )
 from _stats import percentile
 from can.interfaces.udp_multicast.utils import unpack_message
@@ -86,7 +90,7 @@ from can.interfaces.udp_multicast.utils import unpack_message
 from bridge.errors import BridgeError, CodecError
 from bridge.escs import ckesc, ft, uavcan_v0
 from bridge.mavlink import load_dialect
-from bridge.sim.load import PRESETS, LoadReport, preset, stat_fields
+from bridge.sim.load import PRESETS, LoadReport, preset
 
 OUTPUT_RATE_HZ = {"ckesc": 400, "ft": 100}  # per stream: CKESC group 1, each FT ESC
 MOTORS = 4
@@ -122,37 +126,6 @@ def _socket_drops(sock: socket.socket) -> int | None:
     """The kernel's drop count of ``sock`` (from /proc/net/udp), None if not found."""
     found = udp_sockets(sock.getsockname()[1]).get(os.fstat(sock.fileno()).st_ino)
     return None if found is None else found.drops
-
-
-def _holds_bus(pid: int, port: int) -> bool:
-    """Whether ``pid`` or a process under it holds a UDP socket bound to ``port``."""
-    inodes = {inode for member in _tree(pid) for inode in socket_inodes(member)}
-    return not inodes.isdisjoint(udp_sockets(port))
-
-
-def _set_fifo(priority: int) -> str | None:
-    """SCHED_FIFO at ``priority`` for this process; None if done, else why not."""
-    if priority <= 0:
-        return "not asked for (priority 0)"
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, AttributeError) as exc:
-        return f"not permitted ({exc})"
-    return None
-
-
-def _tree(pid: int) -> list[int]:
-    """``pid`` and every live process under it (the daemon, its output loop, its helpers)."""
-    parents: dict[int, list[int]] = {}
-    for entry in os.scandir("/proc"):
-        if entry.name.isdigit() and (fields := stat_fields(int(entry.name))) is not None:
-            parents.setdefault(int(fields[1]), []).append(int(entry.name))
-    found, todo = [], [pid]
-    while todo:
-        current = todo.pop()
-        found.append(current)
-        todo.extend(parents.get(current, []))
-    return found
 
 
 # -- the observer process -------------------------------------------------------------------
@@ -220,7 +193,7 @@ def observer_worker(
     ``seen`` counts them live; ``first_nonzero`` gets the kernel time of the first non-zero one.
     """
     ignore_sigint()
-    fifo_problem = _set_fifo(priority)
+    fifo_problem = set_fifo(priority)
     gc.disable()  # no collector pauses; nothing here makes reference cycles
     sock = multicast_listener(can_port)
     program = _only_from_port(sock, can_port) if filtered else None
@@ -266,7 +239,7 @@ def pilot_worker(mavlink_port: int, priority: int, stop: Any, ready: Any, out: A
     """Armed HEARTBEAT at 1 Hz and SERVO_OUTPUT_RAW at 200 Hz (PWM 1500 on motors 1..4)
     until ``stop`` is set; whatever the bridge sends back is read and dropped."""
     ignore_sigint()
-    fifo_problem = _set_fifo(priority)
+    fifo_problem = set_fifo(priority)
     gc.disable()
     dialect = load_dialect()
     mav = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -366,26 +339,6 @@ def _bridge_args(
     return command
 
 
-def _wait_for(
-    done: Any, timeout_s: float, what: str, daemon: subprocess.Popen[bytes], log_path: Path
-) -> None:
-    """Wait until ``done()``, or raise if the daemon exits or ``timeout_s`` passes first."""
-    deadline = time.monotonic() + timeout_s
-    while not done():
-        if daemon.poll() is not None:
-            raise RuntimeError(
-                f"the bridge exited (code {daemon.returncode}) {what}:\n{log_tail(log_path)}"
-            )
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out {what}:\n{log_tail(log_path)}")
-        time.sleep(0.02)
-
-
-def _sleep_watching(seconds: float, daemon: subprocess.Popen[bytes], log_path: Path) -> None:
-    end = time.monotonic() + seconds
-    _wait_for(lambda: time.monotonic() >= end, seconds + 5.0, "during the run", daemon, log_path)
-
-
 def run_once(
     load_name: str, protocol: str, index: int, args: argparse.Namespace, ctx: Any
 ) -> tuple[Run, list[Command], list[float], float, float]:
@@ -430,15 +383,15 @@ def run_once(
         procs.daemon = daemon
         # Up: it sends (safe) frames, or at least holds a socket on the bus (a bridge may
         # stay silent until it has input).
-        _wait_for(
-            lambda: seen.value > 0 or _holds_bus(daemon.pid, can_port),
+        wait_for(
+            lambda: seen.value > 0 or holds_bus(daemon.pid, can_port),
             START_TIMEOUT_S,
             "before the bridge opened its CAN bus",
             daemon,
             log_path,
         )
         with loads:
-            _sleep_watching(args.settle, daemon, log_path)
+            sleep_watching(args.settle, daemon, log_path)
             stop_pilot, pilot_ready = ctx.Event(), ctx.Event()
             pilot_q = ctx.Queue()
             pilot = ctx.Process(
@@ -448,7 +401,7 @@ def run_once(
             )
             pilot.start()
             procs.add_worker(pilot, stop_pilot)
-            _wait_for(
+            wait_for(
                 lambda: first_nonzero.value > 0.0,
                 START_TIMEOUT_S,
                 "before the bridge sent a non-zero command (armed, PWM 1500)",
@@ -457,14 +410,14 @@ def run_once(
             )
             t0 = float(first_nonzero.value)
             t1 = t0 + args.seconds
-            bridge_pids = _tree(daemon.pid)
+            bridge_pids = process_tree(daemon.pid)
             start = (
                 time.monotonic(),
                 cpu_seconds(bridge_pids),
                 loads.cpu_seconds(),
                 machine_busy_seconds(),
             )
-            _sleep_watching(max(0.0, t1 - time.time()), daemon, log_path)
+            sleep_watching(max(0.0, t1 - time.time()), daemon, log_path)
             elapsed = time.monotonic() - start[0]
             run.bridge_cpu_pct = 100 * (cpu_seconds(bridge_pids) - start[1]) / elapsed
             run.load_cpu_pct = 100 * (loads.cpu_seconds() - start[2]) / elapsed

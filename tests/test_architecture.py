@@ -113,7 +113,8 @@ def test_no_module_imports_itself_back() -> None:
 
 
 PURE = re.compile(
-    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload)|output\.safety|can_errors|backoff"
+    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload|json_schema)|output\.safety"
+    r"|can_errors|backoff"
     r"|escs\.(family|registry|uavcan_v0)"
     r"|escs\.\w+\.(_codec|_frame|_messages|_records|_services|_wire|codec|wire|telemetry))$"
 )

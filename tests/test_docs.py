@@ -210,6 +210,17 @@ def test_the_pages_show_commands() -> None:
     assert shown >= {"run", "decode", "monitor", "sim", "demo", "esc", "plot", "mavlink-dialect"}
 
 
+def test_ci_runs_the_readmes_two_first_commands_test_line_verbatim() -> None:
+    """The README starts with the set-up-and-demo command and the set-up-and-test command, and
+    .ci/run runs the second one as written (so what CI installs is what a new user installs)."""
+    readme = [b for b in _blocks(ROOT / "README.md") if b.lang == "sh"]
+    demo, tests = readme[0].text.strip(), readme[1].text.strip()
+    assert demo.endswith("esc-bridge demo") and "\n" not in demo, demo
+    assert tests.endswith("-m pytest") and "\n" not in tests, tests
+    ci_lines = (ROOT / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+    assert tests in ci_lines, f".ci/run does not run the README's test command: {tests}"
+
+
 @pytest.mark.parametrize(
     ("block", "argv"),
     BRIDGE_COMMANDS,

@@ -63,5 +63,7 @@ def test_the_new_warnings_are_explained() -> None:
         "CAN: FAULT BUS-OFF",
         "CAN: ERROR-PASSIVE",
         "CAN: receive queue full",
+        "frames claiming to be the autopilot",
+        "now speaks from",
     ):
         assert start in quoted, start

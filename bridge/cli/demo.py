@@ -50,7 +50,7 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=None,
         metavar="DIR",
         help="the bridge records the flight into DIR as `esc-bridge run --record` does (a "
-        "candump .log and a .tlog; `esc-bridge plot DIR` draws them)",
+        "candump .log, a .tlog and an .mcap; `esc-bridge plot DIR` draws them)",
     )
     # Flies the same profile faster; for tests.
     demo.add_argument("--time-scale", type=positive_seconds, default=1.0, help=argparse.SUPPRESS)

@@ -10,6 +10,8 @@ from bridge.cli._common import EXIT_FAILED, EXIT_OK, id_list, int_list
 from bridge.errors import ConfigError
 from bridge.escs import registry
 
+SOURCES = ("auto", "capture", "mcap")  # as bridge.plot.flight.SOURCES, which imports more
+
 INSTALL_HINT = (
     "esc-bridge plot draws with matplotlib, which is not installed; install the plot extra: "
     "pip install 'esc-bridge[plot]' (from a checkout: pip install -e '.[plot]')"
@@ -24,7 +26,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--record DIR`): per ESC, its command against its rpm, current, voltage and "
         "temperatures over time, with the autopilot's arming, the bridge's failsafes and motor "
         "tests shaded and the ESC's failure flags marked, plus an overview of every ESC and an "
-        "HTML page of them all, into RECORDING_DIR/<recording>-plot/ (or --out). "
+        "HTML page of them all, into RECORDING_DIR/<recording>-plot/ (or --out). It reads the "
+        "recording's candump .log and .tlog, or its .mcap when they are not there (--source). "
         "Needs matplotlib (pip install 'esc-bridge[plot]').",
     )
     plot.add_argument(
@@ -42,6 +45,13 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         type=Path,
         metavar="DIR",
         help="write the pictures into DIR/<recording>-plot/ (default: RECORDING_DIR)",
+    )
+    plot.add_argument(
+        "--source",
+        choices=SOURCES,
+        default="auto",
+        help="what to draw from: the candump .log and the .tlog (capture), the .mcap, or "
+        "(auto, the default) the capture where it is there, else the .mcap",
     )
     plot.add_argument(
         "--protocol",
@@ -89,7 +99,7 @@ def _plot(args: argparse.Namespace) -> int:
 
     recordings = recording.find_recordings(args.directory)  # first: a wrong directory says so
     if args.recording is not None:
-        name = args.recording.removesuffix(".log").removesuffix(".tlog")
+        name = args.recording.removesuffix(".log").removesuffix(".tlog").removesuffix(".mcap")
         chosen = [r for r in recordings if r.name == name]
         if not chosen:
             raise ConfigError(
@@ -111,7 +121,9 @@ def _plot(args: argparse.Namespace) -> int:
     from bridge.plot.page import PAGE, page_html
 
     for files in chosen:
-        flight = load_flight(files, args.protocol, args.ids, args.channels, args.pole_pairs)
+        flight = load_flight(
+            files, args.protocol, args.ids, args.channels, args.pole_pairs, args.source
+        )
         out = (args.out or args.directory) / f"{files.name}-plot"
         try:
             pictures = draw.write_pictures(flight, out)

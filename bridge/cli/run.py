@@ -38,8 +38,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     run.add_argument(
         "--record",
         metavar="DIR",
-        help="record every CAN frame sent and received (candump .log) and the MAVLink traffic "
-        "(.tlog) into DIR",
+        help="record every CAN frame sent and received (candump .log), the MAVLink traffic "
+        "(.tlog) and the flight as JSON channels for Foxglove and PlotJuggler (.mcap) into DIR",
     )
     run.add_argument(
         "--check",

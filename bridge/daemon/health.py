@@ -117,6 +117,7 @@ class HealthReport:
                 age_ms=round(stats["input_age_us"] / 1000, 1),
                 out_of_order=stats["input_out_of_order"],
                 unsigned=stats["input_unsigned"],
+                other_address=stats["input_other_address"],
             ),
             # The autopilot link as the loop, its owner, keeps it: what the main process was
             # too slow to take, and what could not be written to the autopilot.

@@ -17,7 +17,7 @@ from bridge.can_io import SHAREABLE_INTERFACES, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.drivers import flush_safe_values, make_driver
-from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock, SentCommands
 from bridge.output.output_loop import STOP_SIGNALS, LoopSetup, OutputLoop, run_in_process
 
 log = logging.getLogger(__name__)
@@ -42,6 +42,7 @@ class LoopRunner:
         snapshot: InputSnapshot,
         stats: LoopStats,
         relay: socket.socket,
+        sent: SentCommands | None = None,
     ) -> None:
         self._stats = stats
         config = setup.config
@@ -54,11 +55,11 @@ class LoopRunner:
             ctx = multiprocessing.get_context("spawn")
             self._process = ctx.Process(
                 target=run_in_process,
-                args=(setup, motor_tests, snapshot, stats, relay),
+                args=(setup, motor_tests, snapshot, stats, relay, sent),
                 name="esc-bridge-output",
             )
         else:
-            self._loop = OutputLoop(setup, motor_tests, snapshot, stats, relay)
+            self._loop = OutputLoop(setup, motor_tests, snapshot, stats, relay, sent=sent)
             self._thread = threading.Thread(target=self._run_thread, name="esc-bridge-output")
         self.thread_error: BaseException | None = None
 

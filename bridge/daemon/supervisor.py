@@ -31,7 +31,9 @@ from pathlib import Path
 
 from bridge.can_io import SHAREABLE_INTERFACES
 from bridge.daemon.absence import AbsenceWatch, EscsHeard
+from bridge.daemon.address_reports import AddressReports
 from bridge.daemon.bus_reports import BusWatch
+from bridge.daemon.commands_sent import CommandsSent
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
 from bridge.daemon.motor_test_control import MotorTestControl
@@ -39,17 +41,21 @@ from bridge.daemon.preflight import Plan
 from bridge.daemon.severity import SEVERITY_CRITICAL, SEVERITY_WARNING
 from bridge.errors import LinkError
 from bridge.escs import registry
-from bridge.mavlink.link import MavlinkLink
+from bridge.mavlink import load_dialect
+from bridge.mavlink.link import MavlinkLink, relayed_msg_ids
 from bridge.mavlink.relay import MainConnection, relay_pair
+from bridge.mavlink.traffic import TrafficReader
 from bridge.output.autopilot_input import InputSetup
-from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock, SentCommands
 from bridge.output.motor_test import limits_for
 from bridge.output.output_loop import LoopSetup
-from bridge.output.safety import LoopState
+from bridge.output.safety import SENDING_COMMANDS, LoopState
 from bridge.output.transmit import TxState
 from bridge.stopping import StopSignals
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
+from bridge.telemetry.mcap_channels import BridgeState, metadata
+from bridge.telemetry.mcap_out import LogHandler
 from bridge.telemetry.recorder import Recording
 
 log = logging.getLogger(__name__)
@@ -74,6 +80,7 @@ class Supervisor:
         self.motor_tests = MotorTestBlock(n)
         self.input_snapshot = InputSnapshot(n)
         self.stats = LoopStats()
+        self.sent = SentCommands(n)
         valid_range = plan.valid_range
         # An interface only one handle can open is read through the thread-mode loop's handle.
         shares_loop_bus = config.can.interface not in SHAREABLE_INTERFACES | {"virtual"} and (
@@ -82,14 +89,22 @@ class Supervisor:
         setup = LoopSetup(
             config=config,
             input=InputSetup(
-                plan.mixer, valid_range, plan.input_range, relay_outputs=record_dir is not None
+                plan.mixer,
+                valid_range,
+                plan.input_range,
+                relay_outputs=record_dir is not None,
+                # Recorded, the link gets every frame; else only what it acts on.
+                relay_msg_ids=None if record_dir is not None else relayed_msg_ids(),
             ),
             log_level=logging.getLogger().getEffectiveLevel(),
             bus_receive="all" if shares_loop_bus else "none",
         )
         loop_end, main_end = relay_pair()
-        self.runner = LoopRunner(setup, self.motor_tests, self.input_snapshot, self.stats, loop_end)
-        self.recording = Recording.open(Path(record_dir), config.can) if record_dir else None
+        self.runner = LoopRunner(
+            setup, self.motor_tests, self.input_snapshot, self.stats, loop_end, self.sent
+        )
+        self.recording = self._open_recording(Path(record_dir)) if record_dir else None
+        mcap = self.recording.mcap if self.recording is not None else None
         tlog = self.recording.tlog if self.recording is not None else None
         relayed = [MainConnection(main_end)]
 
@@ -102,8 +117,15 @@ class Supervisor:
         # Two inputs per input timeout at least: the loop arms on nothing slower.
         needed_rate_hz = 2000 / config.output.input_timeout_ms
         self.link = MavlinkLink(
-            config.mavlink, None, tlog=tlog, uplink=uplink, needed_rate_hz=needed_rate_hz
+            config.mavlink,
+            None,
+            tlog=tlog,
+            uplink=uplink,
+            needed_rate_hz=needed_rate_hz,
+            tlog_tap=mcap.mavlink if mcap is not None else None,
         )
+        if mcap is not None:
+            mcap.autopilot_clock = self.link.autopilot_boot_usec
         self.motor_test = MotorTestControl(
             limits_for(plan.mixer, plan.input_range, config.output.motor_test_max_s),
             config,
@@ -114,6 +136,7 @@ class Supervisor:
             self.link.dialect,
         )
         self.link.add_command_handler(self.motor_test.handle_command)
+        self._addresses = AddressReports(config, self.link.statustext)
         self.health_report = HealthReport(
             config, self.stats, self.input_snapshot, self.link, self.motor_test
         )
@@ -126,8 +149,11 @@ class Supervisor:
             actuators_output=self.health_report.actuators_output,
             shared_bus=self.runner.loop_bus if shares_loop_bus else None,
             recorder=self.recording.can if self.recording is not None else None,
+            states=mcap,
         )
         self.health_report.fanout = self.fanout
+        # Each ESC's command comes from the loop, not read back off the bus.
+        self.commands_sent = CommandsSent(config, self.sent, self.fanout.table, mcap)
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
         self._bus_watch = BusWatch(self._report)
@@ -137,6 +163,29 @@ class Supervisor:
         self._last_errors = 0
         self._errors_logged_at = 0.0
         self._tick_errors = 0
+
+    def _open_recording(self, directory: Path) -> Recording:
+        config = self._config
+        mavlink = config.mavlink
+        autopilot = (mavlink.autopilot_system_id, mavlink.autopilot_component_id)
+        pairs = config.telemetry.pole_pairs
+        return Recording.open(
+            directory,
+            config.can,
+            traffic=TrafficReader(
+                load_dialect(),
+                mavlink.source,
+                autopilot,
+                (mavlink.autopilot_system_id, mavlink.component_id),
+            ),
+            metadata=metadata(
+                config.output.protocol,
+                config.escs.ids,
+                mixer=self._plan.mixer.name,
+                rate_hz=str(config.rate_hz),
+                pole_pairs=",".join(map(str, pairs)) if isinstance(pairs, tuple) else str(pairs),
+            ),
+        )
 
     def stop(self, reason: str = "") -> None:
         """Stop: the loop starts its safe flush on its next tick (the request is one store to
@@ -152,6 +201,20 @@ class Supervisor:
             log.info("%s: stopping", self._stop_reason)
 
     def run(self) -> int:
+        """Run until stopped; the exit code. The recording, if any, gets the log from here on
+        and is closed at the end."""
+        handler = LogHandler(self.recording.mcap) if self.recording is not None else None
+        if handler is not None:
+            logging.getLogger().addHandler(handler)
+        try:
+            return self._run()
+        finally:
+            if handler is not None:
+                logging.getLogger().removeHandler(handler)
+            if self.recording is not None:
+                self.recording.close()
+
+    def _run(self) -> int:
         config = self._config
         log.info(
             "esc-bridge: %s x%d (%s), mixer %s, %d Hz, loop in a %s; %s",
@@ -191,8 +254,6 @@ class Supervisor:
             self.runner.join(1.0)
             self.fanout.close()
             self.link.close()
-            if self.recording is not None:
-                self.recording.close()
 
     def _loop_died(self) -> int:
         """The loop ended without being asked: safe values from here, then exit 1 (so that
@@ -248,8 +309,10 @@ class Supervisor:
                 ),
             )
         self.health_report.sample()
+        self.commands_sent.update()
         self._report_states()
         self._bus_watch.check(now_ns, stats, None if reader is None else reader.stats)
+        self._addresses.check(stats)
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]
         if tick_errors != self._tick_errors:
@@ -280,12 +343,12 @@ class Supervisor:
         entered = stats.state_entries()
         for passed, (severity, text) in STATE_REPORTS.items():
             if passed != state and entered[passed] != self._entered[passed]:
-                self._report(severity, text)
+                self._report(severity, text, state=passed)
         if state in STATE_REPORTS and (
             state != self._reported_state or entered[state] != self._entered[state]
         ):
             severity, text = STATE_REPORTS[state]
-            self._report(severity, text)
+            self._report(severity, text, state=state)
         self._reported_state = state
         self._entered = entered
 
@@ -334,11 +397,23 @@ class Supervisor:
             "?" if stats.kernel_drops is None else stats.kernel_drops,
         )
 
-    def _report(self, severity: int, text: str, detail: str = "") -> None:
-        """``text`` in the log (with ``detail`` after it) and as a STATUSTEXT."""
+    def _report(
+        self, severity: int, text: str, detail: str = "", state: LoopState | None = None
+    ) -> None:
+        """``text`` in the log (with ``detail`` after it) and as a STATUSTEXT; a ``state`` the
+        loop entered is recorded."""
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO
         log.log(level, "%s%s", text, f": {detail}" if detail else "")
         self.link.statustext(severity, text)
+        if state is not None and self.recording is not None:
+            self.recording.mcap.state(
+                BridgeState(
+                    state=state.name.lower(),
+                    failsafe=state not in SENDING_COMMANDS,
+                    severity=severity,
+                    text=text,
+                )
+            )
 
 
 def run(

@@ -40,8 +40,11 @@ Scanning rules
   as the rest of its signature, costing that frame.
 - At most one partial frame (under 280 bytes) is kept between :meth:`FrameScanner.feed` calls,
   so a stream of junk never grows memory. A frame behind a junk header that claims a long
-  frame waits until that length has arrived, unless the caller says a datagram holds whole
-  frames (``whole=True``).
+  frame waits until that length has arrived.
+- A datagram (``whole=True``) holds whole frames: nothing is kept from it for the next call.
+  A UDP link's datagrams come from anyone who can reach the port, so a frame cut short at the
+  end of one must never be completed by the first bytes of the next: a HEARTBEAT that said
+  "armed", cut one byte short by one sender, once took its last byte from another's datagram.
 
 The CRC uses the standard library's CRC-16/CCITT (``binascii.crc_hqx``, which is the same
 polynomial fed most significant bit first) on bit-reversed bytes: 0.4 µs for a
@@ -214,13 +217,13 @@ class FrameScanner:
 
     def feed(self, data: bytes | bytearray, *, whole: bool = False) -> list[Frame]:
         """The frames completed by ``data``, in stream order. A partial frame at the end is
-        kept for the next call; a UDP datagram is one call.
+        kept for the next call.
 
-        ``whole``: ``data`` ends at a frame boundary (a datagram from a sender that puts whole
-        frames in each, as pymavlink and mavlink-router do). Then nothing is kept: a frame
-        still incomplete at the end cannot be one, costs one byte like a bad CRC, and the
-        frames behind its first byte are found now instead of after the next datagram. Leave
-        it False for serial-to-UDP bridges that cut the byte stream anywhere.
+        ``whole``: ``data`` is one datagram, which ends at a frame boundary (pymavlink,
+        mavlink-router, ArduPilot and PX4 put whole frames in each). Then nothing is kept: a
+        frame still incomplete at the end cannot be one, costs one byte like a bad CRC, and the
+        frames behind its first byte are found now. A sender that cuts the byte stream anywhere
+        (a serial-to-UDP converter) loses the frames it splits between two datagrams.
         """
         stream = self._pending + data if self._pending else bytes(data)
         end = len(stream)

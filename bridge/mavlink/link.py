@@ -80,7 +80,7 @@ from bridge.mavlink.signing import SIGNATURE_REJECTED, codec_class, new_parser, 
 from bridge.mavlink.stats import LinkStats, OutputStats, log_sparsely
 from bridge.mavlink.tlog import Tlog
 
-__all__ = ["InputSink", "MavlinkLink"]
+__all__ = ["RELAYED_MESSAGES", "InputSink", "MavlinkLink", "relayed_msg_ids"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,21 @@ _JOIN_TIMEOUT_S: Final = 2.0
 _STATUSTEXT_LEN: Final = 50  # STATUSTEXT.text is char[50]
 _HEADER_V1: Final = 6  # bytes before the payload: magic, len, seq, sys, comp, msgid
 _HEADER_V2: Final = 10  # magic, len, incompat, compat, seq, sys, comp, msgid (3 bytes)
+
+
+RELAYED_MESSAGES: Final = ("HEARTBEAT", "COMMAND_LONG", "COMMAND_ACK", "SYSTEM_TIME", "TIMESYNC")
+"""What the link acts on from the autopilot's connection besides its outputs: all the control
+loop need relay to it when the link is not recorded (:meth:`MavlinkLink._handle`)."""
+
+
+def relayed_msg_ids() -> frozenset[int]:
+    """The IDs of :data:`RELAYED_MESSAGES` in the project's dialect.
+
+    Raises:
+        DialectError: the dialect could not be generated or loaded.
+    """
+    dialect = load_dialect()
+    return frozenset(getattr(dialect, f"MAVLINK_MSG_ID_{name}") for name in RELAYED_MESSAGES)
 
 
 class InputSink(Protocol):
@@ -145,6 +160,7 @@ class MavlinkLink:
         tlog: BinaryIO | None = None,
         uplink: Callable[[], Any] | None = None,
         needed_rate_hz: float = 0.0,
+        tlog_tap: Callable[[int, bytes], None] | None = None,
     ) -> None:
         """``sink``: receives the autopilot's outputs and arming state; None when the owner of
         the autopilot's link acts on them (the daemon's control loop), which then reports the
@@ -156,6 +172,8 @@ class MavlinkLink:
         (:class:`bridge.mavlink.relay.MainConnection`): the loop owns the real link.
         ``needed_rate_hz``: the slowest output stream the control loop arms on (two inputs
         per input timeout); a slower one is reported loudly. 0: no such limit.
+        ``tlog_tap``: gets every frame recorded in ``tlog`` with its stamp (µs since the epoch),
+        on the thread that records it (the MCAP recording).
 
         Raises:
             DialectError: the project's MAVLink dialect could not be generated or loaded.
@@ -167,7 +185,7 @@ class MavlinkLink:
         self.stats = LinkStats()
         self.output_stats = tuple(OutputStats(url) for url in config.outputs)
         """One per ``[mavlink] outputs`` entry, in that order."""
-        self._tlog = None if tlog is None else Tlog(tlog, self.stats)
+        self._tlog = None if tlog is None else Tlog(tlog, self.stats, tlog_tap)
         self._send_lock = threading.Lock()
         self._codec_lock = threading.Lock()
         self._stop = threading.Event()

@@ -2,7 +2,8 @@
 
 A .tlog record is the time it was logged, in µs since the Unix epoch as 8 bytes big-endian,
 then the frame as on the wire. The caller opens and closes the file; :class:`Tlog` appends to
-it from any thread and flushes it.
+it from any thread and flushes it, and hands each frame with its stamp to a tap, if given (the
+MCAP recording).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import logging
 import struct
 import threading
 import time
+from collections.abc import Callable
 from typing import BinaryIO, Final
 
 from bridge.mavlink.stats import LinkStats, log_sparsely
@@ -24,11 +26,15 @@ _TLOG_STAMP: Final = struct.Struct(">Q")
 
 class Tlog:
     """Appends frames to ``file``, stamped when appended; a failed append is counted in
-    ``stats.tlog_errors`` and logged sparsely, never raised."""
+    ``stats.tlog_errors`` and logged sparsely, never raised. ``tap`` gets every frame too,
+    with its stamp (µs since the epoch); it runs on the caller's thread, so it must be quick."""
 
-    def __init__(self, file: BinaryIO, stats: LinkStats) -> None:
+    def __init__(
+        self, file: BinaryIO, stats: LinkStats, tap: Callable[[int, bytes], None] | None = None
+    ) -> None:
         self._file = file
         self._stats = stats
+        self._tap = tap
         self._lock = threading.Lock()
 
     def record(self, frame: bytes) -> None:
@@ -46,6 +52,8 @@ class Tlog:
                     "could not append to the MAVLink recording: %s",
                     exc,
                 )
+            if self._tap is not None:
+                self._tap(stamp_us, frame)
 
     def flush(self) -> None:
         """Flush the file; trouble is logged, never raised."""

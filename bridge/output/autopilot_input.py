@@ -7,15 +7,21 @@ For every chunk read it:
 
 * finds the frames (:class:`~bridge.mavlink.frames.FrameScanner`: a few µs per frame, no
   pymavlink parser) and keeps those of the configured autopilot (system and component), signed
-  with the configured key when there is one;
+  with the configured key when there is one. A UDP datagram is scanned on its own: a frame cut
+  short at its end is junk, never completed by the next datagram, which may come from anyone.
+  On UDP the autopilot is also tied to one address
+  (:class:`~bridge.mavlink.autopilot_address.AutopilotAddress`): frames claiming its IDs from
+  any other are refused and counted. That costs one comparison per datagram from the
+  autopilot's own address; only datagrams from elsewhere are looked at frame by frame;
 * takes the arming state from its HEARTBEAT (and HIL_ACTUATOR_CONTROLS' mode), stamped with
   the kernel's receive time;
 * decodes the configured motor-output message into the input vector, dates it by the
   autopilot's own clock (:class:`~bridge.mavlink.clock.AutopilotClock`: a packet that sat in a
   buffer is known to be old) and mixes it, refusing NaN, infinite and out-of-range channels;
-* relays every other frame to the main process (:mod:`bridge.mavlink.relay`), which handles
-  everything else the autopilot sends; the outputs too when it records the link (it learns
-  how many arrived from the loop's counters).
+* relays to the main process (:mod:`bridge.mavlink.relay`) the frames it acts on
+  (``InputSetup.relay_msg_ids``: HEARTBEAT, commands, the autopilot's clock), so that it wakes
+  for nothing else; every frame, the outputs too, when it records the link (it learns how many
+  outputs arrived from the loop's counters).
 
 It writes to the link what the main process relays the other way. Nothing here blocks or logs
 per frame: counters go to :class:`~bridge.output.mailbox.LoopStats`.
@@ -34,6 +40,7 @@ from bridge.mavlink.actuators import (
     heartbeat_armed,
     heartbeat_autopilot,
 )
+from bridge.mavlink.autopilot_address import Address, AutopilotAddress, address_code
 from bridge.mavlink.clock import AutopilotClock
 from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.frames import Frame, FrameScanner, ReplayGuard, signing_timestamp
@@ -60,6 +67,8 @@ class InputSetup:
     valid_range: tuple[float, float]
     channel_range: tuple[float, float] | None  # for axis_channels; None: the mixer's (PWM)
     relay_outputs: bool = False  # relay the autopilot's outputs too (the recording wants them)
+    # The message IDs the main process acts on: only those are relayed (None: every frame).
+    relay_msg_ids: frozenset[int] | None = None
 
 
 class AutopilotInput:
@@ -86,6 +95,11 @@ class AutopilotInput:
         self._snapshot = snapshot
         self._relay = relay
         self._autopilot = (mavlink.autopilot_system_id, mavlink.autopilot_component_id)
+        # A silent autopilot's place on a UDP link is taken only once its arming state has
+        # timed out (the HEARTBEAT-lost failsafe already holds the motors stopped).
+        self._move_after_ns = config.output.arming_timeout_ms * 1_000_000
+        self._address: AutopilotAddress | None = None  # UDP only, from open()
+        self._whole = False  # each read is a whole datagram: nothing carries to the next
         # With a key, only signed, fresh control messages count (the guard checks the
         # signature before it touches the replay state).
         self._guard = (
@@ -99,6 +113,7 @@ class AutopilotInput:
         # The main process gets every frame but the autopilot's outputs, which the loop acts on
         # and counts; all of them when it records the link.
         self._relay_outputs = setup.relay_outputs
+        self._relay_msg_ids = setup.relay_msg_ids
         self._clock = AutopilotClock(time_bits=self._decoder.time_bits)
         self._scanner = FrameScanner.for_dialect(load_dialect())
         self._mixer = Mixer(setup.mixer, setup.valid_range, AXIS_VALID_RANGE)
@@ -124,6 +139,10 @@ class AutopilotInput:
         self._i_sent, self._i_dropped = slot("link_sent"), slot("link_dropped")
         self._i_bad_crc, self._i_junk = slot("input_bad_crc"), slot("input_junk_bytes")
         self._i_reconnects = slot("link_reconnects")
+        self._i_other = slot("input_other_address")
+        self._i_other_from = slot("input_other_address_from")
+        self._i_address = slot("link_autopilot_address")
+        self._i_moves = slot("link_autopilot_moves")
 
     def open(self) -> None:
         """Open the autopilot's transport.
@@ -132,7 +151,14 @@ class AutopilotInput:
             LinkError: the link cannot be opened and will not get better by waiting (an
                 address in use, an unknown host).
         """
-        self._transport = open_transport(self._endpoint)
+        transport = self._transport = open_transport(self._endpoint)
+        self._whole = transport.datagrams
+        if transport.datagrams:
+            address = self._address = AutopilotAddress(
+                transport.configured_peer, self._move_after_ns
+            )
+            if address.address is not None:
+                self._counters[self._i_address] = address_code(address.address)
 
     @property
     def fd(self) -> int | None:
@@ -160,15 +186,23 @@ class AutopilotInput:
         if transport is None:
             return False
         fresh = False
+        address, whole = self._address, self._whole
         for _ in range(MAX_READS_PER_WAKE):
             chunk = transport.recv()
             if chunk is None:
                 break
             data, received_ns = chunk
+            frames = self._scanner.feed(data, whole=whole)
+            if address is not None:
+                sender = transport.sender
+                if sender == address.address:
+                    address.heard_ns = received_ns
+                elif frames and sender is not None:
+                    frames = self._screen(frames, address, sender, received_ns)
             relayed: list[bytes] = []
-            for frame in self._scanner.feed(data):
+            for frame in frames:
                 fresh |= self._on_frame(frame, received_ns, now_ns)
-                if self._relay_outputs or not self._is_autopilot_output(frame):
+                if self._relays(frame):
                     relayed.append(frame.raw)
             relay = self._relay
             if relayed and relay is not None and not relay.forward(b"".join(relayed)):
@@ -202,6 +236,54 @@ class AutopilotInput:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
+
+    def _relays(self, frame: Frame) -> bool:
+        """Whether the main process gets ``frame``: all of them when it records the link, else
+        those it acts on (not the autopilot's outputs: the loop acts on them and counts them),
+        so that it wakes for nothing else."""
+        if self._relay_outputs:
+            return True
+        if self._relay_msg_ids is not None and frame.msg_id not in self._relay_msg_ids:
+            return False
+        return not self._is_autopilot_output(frame)
+
+    def _screen(
+        self, frames: list[Frame], address: AutopilotAddress, sender: Address, received_ns: int
+    ) -> list[Frame]:
+        """The frames of a datagram from ``sender``, which is not the autopilot's address, less
+        those claiming the autopilot's IDs that are refused. While its place is held (its
+        address spoke within the arming timeout, or is udpout's peer) every such frame is
+        refused and counted. While the place is free (no address yet, or the old one silent for
+        longer), the first control message (HEARTBEAT or motor output) makes ``sender`` the
+        autopilot's address; any other frame passes, taking nothing (none is acted on)."""
+        autopilot, control_ids = self._autopilot, self._decoder.msg_ids
+        refused = address.refused
+        kept: list[Frame] = []
+        for frame in frames:
+            if (frame.sys_id, frame.comp_id) == autopilot and sender != address.address:
+                if not address.may_take(received_ns):
+                    address.refuse(sender)
+                    continue
+                if frame.msg_id == HEARTBEAT_ID or frame.msg_id in control_ids:
+                    self._take_address(address, sender, received_ns)
+            kept.append(frame)
+        if address.refused != refused:
+            counters = self._counters
+            counters[self._i_other] = address.refused
+            counters[self._i_other_from] = address_code(sender)
+        return kept
+
+    def _take_address(self, address: AutopilotAddress, sender: Address, now_ns: int) -> None:
+        """``sender`` is the autopilot's address from now on: replies go there, and one that
+        took a silent address's place is a new autopilot as far as the loop knows."""
+        moved = address.take(sender, now_ns)
+        if self._transport is not None:
+            self._transport.reply_to(sender)
+        counters = self._counters
+        counters[self._i_address] = address_code(sender)
+        counters[self._i_moves] = address.moves
+        if moved:
+            self._forget_autopilot(now_ns)
 
     def _is_autopilot_output(self, frame: Frame) -> bool:
         return (
@@ -265,8 +347,9 @@ class AutopilotInput:
         return True
 
     def _forget_autopilot(self, now_ns: int) -> None:
-        """The link was reopened: whoever answers now starts afresh (disarmed until its own
-        HEARTBEAT says otherwise, its clock and its outputs unknown)."""
+        """The link was reopened, or the autopilot speaks from a new UDP address: whoever
+        answers now starts afresh (disarmed until its own HEARTBEAT says otherwise, its clock
+        and its outputs unknown)."""
         self._decoder.reset()
         self._clock.reset()
         if self._inputs.armed:

@@ -8,6 +8,7 @@ What little crosses between them goes through shared memory, one writer per bloc
 * :class:`MotorTestBlock`: a MAV_CMD_DO_MOTOR_TEST accepted by the main process, for the loop;
 * :class:`InputSnapshot`: the input the loop acts on (its mix, when the autopilot produced it,
   the arming state), for the main process's health report and motor-test checks;
+* :class:`SentCommands`: the commands the loop last sent, for the main process's reports;
 * :class:`LoopStats`: the loop's counters, single 8-byte words.
 
 A block is ``seq | body | CRC-32 of seq and body``. The writer packs all three; a reader copies
@@ -41,12 +42,17 @@ INPUT_VECTOR_LEN = len(INPUT_NAMES)
 
 __all__ = [
     "LATENESS_RING",
+    "SENT_COMMANDS",
+    "SENT_SAFE",
+    "SENT_TEST",
     "STAT_FIELDS",
     "InputSnapshot",
     "LoopState",
     "LoopStats",
     "MotorTest",
     "MotorTestBlock",
+    "Sent",
+    "SentCommands",
     "SharedBlock",
     "Snapshot",
 ]
@@ -251,6 +257,50 @@ class InputSnapshot:
         )
 
 
+SENT_COMMANDS, SENT_SAFE, SENT_TEST = 1, 2, 3
+"""What a tick's frames carry: the commands of some fractions; the safe values; a motor test
+(one motor at its test fraction, the others at their safe values)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sent:
+    """The commands the loop last put on the bus, as the main process read them."""
+
+    seq: int
+    kind: int
+    """:data:`SENT_COMMANDS`, :data:`SENT_SAFE` or :data:`SENT_TEST`."""
+    test_index: int
+    """The motor a motor test spins, 0-based (with :data:`SENT_TEST`)."""
+    fractions: tuple[float, ...]
+    """The fractions the commands carry (with :data:`SENT_COMMANDS` and :data:`SENT_TEST`)."""
+
+
+class SentCommands:
+    """The commands the loop last sent, for the main process (the ESC state's ``command``, the
+    ``actuators/output`` key): the loop knows what it sent, so nothing reads it back off the
+    bus. Written when the commands change (per input at most, without slew rates)."""
+
+    def __init__(self, n_outputs: int, ctx: Any = None) -> None:
+        self.n_outputs = n_outputs
+        self._block = SharedBlock(f"qq{n_outputs}d", ctx)
+
+    def write(self, kind: int, test_index: int, fractions: list[float]) -> None:
+        """From the loop, when what it sends changes."""
+        self._block.write(kind, test_index, *fractions)
+
+    def seq(self) -> int:
+        """The sequence number in memory now: cheap, to skip a read when nothing changed."""
+        return self._block.seq()
+
+    def read(self) -> Sent | None:
+        """The newest record; None before the loop wrote one."""
+        record = self._block.read()
+        if record is None:
+            return None
+        seq, kind, test_index, *fractions = record
+        return Sent(seq, kind, test_index, tuple(fractions))
+
+
 STAT_FIELDS = (
     "state",  # LoopState
     "ticks",
@@ -269,6 +319,8 @@ STAT_FIELDS = (
     "input_outputs",  # motor-output messages from the autopilot it acted on
     "input_heartbeats",  # HEARTBEATs (arming state) from the autopilot
     "input_foreign",  # motor outputs or HEARTBEATs from any other system or component
+    "input_other_address",  # UDP: frames claiming the autopilot's IDs from another address
+    "input_other_address_from",  # where the latest of those came from (address_code); 0: none
     "input_bad_crc",  # frames of known messages with a bad CRC
     "input_junk_bytes",  # bytes skipped while looking for a frame
     "input_unsigned",  # with a signing key: control messages refused (unsigned, bad, replayed)
@@ -279,6 +331,8 @@ STAT_FIELDS = (
     "link_sent",  # frames from the main process written to the autopilot link
     "link_dropped",  # frames for the autopilot link dropped (link down or full)
     "link_reconnects",
+    "link_autopilot_address",  # UDP: the autopilot's address (address_code); 0: not known yet
+    "link_autopilot_moves",  # UDP: times another address took a silent autopilot's place
     "input_age_us",  # age of the newest input when it was acted on (produced -> acted), µs
     # How many times the loop entered each state, in LoopState's order: the supervisor reports
     # every state entered since it last looked, even one left again before it looked.

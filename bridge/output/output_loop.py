@@ -48,7 +48,17 @@ from bridge.escs.drivers import EscDriver, make_driver
 from bridge.mavlink.relay import LoopEnd
 from bridge.output.autopilot_input import AutopilotInput, InputSetup
 from bridge.output.busload import IMMEDIATE_MAX_RATE_FACTOR
-from bridge.output.mailbox import LATENESS_RING, InputSnapshot, LoopStats, MotorTest, MotorTestBlock
+from bridge.output.mailbox import (
+    LATENESS_RING,
+    SENT_COMMANDS,
+    SENT_SAFE,
+    SENT_TEST,
+    InputSnapshot,
+    LoopStats,
+    MotorTest,
+    MotorTestBlock,
+    SentCommands,
+)
 from bridge.output.motor_test import test_frames
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 from bridge.output.slew import SlewLimiter
@@ -115,6 +125,7 @@ class CommandSelector:
     ) -> None:
         self.driver = driver
         self._slew = slew
+        self._slewing = slew.limits
         self._limits = limits
         self._inputs = inputs
         self._zeros = [0.0] * n_outputs
@@ -127,11 +138,17 @@ class CommandSelector:
         self._test_fractions = [0.0] * n_outputs
         self.test_index = -1
         """The output a motor test spins now, 0-based; -1 = none."""
+        self.sent_kind = SENT_SAFE
+        self.sent_fractions: list[float] = self._zeros
+        """What the last tick's frames carry: its kind (:data:`SENT_COMMANDS`, the commands of
+        ``sent_fractions``; :data:`SENT_SAFE`; :data:`SENT_TEST`, motor ``test_index`` at its
+        test throttle), for the main process. A new list whenever the commands change."""
 
     def start_motor_test(self, test: MotorTest) -> None:
         """A motor test read from the main process (count 0: stop any)."""
         self._test = test
         self._inputs.motor_test_until_ns = test.until_ns
+        self._test_fractions = list(self._test_fractions)  # new commands: a new list
 
     def select(
         self, tick: int, now_ns: int, fractions: list[float] | None, dt_s: float
@@ -154,19 +171,26 @@ class CommandSelector:
                 index = self._test.index_at(now_ns)
                 self._spin(index)
                 if index >= 0:
-                    return test_frames(driver, tick, self._test_fractions, index)
+                    frames = test_frames(driver, tick, self._test_fractions, index)
+                    self.sent_kind, self.sent_fractions = SENT_TEST, self._test_fractions
+                    return frames
             elif state == LoopState.RUNNING and fractions is not None:
-                return driver.tick_frames(tick, self._slew.apply(fractions, dt_s))
+                # Without slew rates the commands are the input's own (a list per input).
+                if self._slewing:
+                    fractions = self._slew.apply(fractions, dt_s)
+                frames = driver.tick_frames(tick, fractions)
+                self.sent_kind, self.sent_fractions = SENT_COMMANDS, fractions
+                return frames
         # Any fault in slewing or encoding means safe values this tick, never a dead loop.
         except Exception:  # noqa: BLE001
             self.faults += 1
+        self.sent_kind = SENT_SAFE
         return driver.safe_frames(tick)
 
     def _spin(self, index: int) -> None:
         """Make ``index`` the motor under test (-1: none), the others at 0."""
         if index != self.test_index:
-            if self.test_index >= 0:
-                self._test_fractions[self.test_index] = 0.0
+            self._test_fractions = [0.0] * len(self._test_fractions)  # new commands: a new list
             self.test_index = index
         if index >= 0 and self._test is not None:
             self._test_fractions[index] = self._test.fraction
@@ -184,8 +208,10 @@ class OutputLoop:
         stats: LoopStats,
         relay: socket.socket | None,
         watch_parent: bool = False,
+        sent: SentCommands | None = None,
     ) -> None:
-        """``watch_parent``: stop when the parent process goes (the loop's own process)."""
+        """``watch_parent``: stop when the parent process goes (the loop's own process).
+        ``sent``: where the commands sent go for the main process (None: nobody reads them)."""
         config = setup.config
         self._config = config
         self._bus_receive = setup.bus_receive
@@ -223,6 +249,9 @@ class OutputLoop:
         self._test_seq = 0
         self._stop_at_ns = 0
         self._parent = os.getppid() if watch_parent else 0
+        n_outputs = len(setup.input.mixer.outputs)
+        self._sent = sent if sent is not None else SentCommands(n_outputs)
+        self._shared_kind, self._shared_fractions = 0, self._selector.sent_fractions
         self._counters = stats.counters
         self._lateness = stats.lateness_ring
         slot = stats.slot
@@ -250,8 +279,10 @@ class OutputLoop:
         Raises:
             BridgeError: the bus or the link could not be opened (state FAILED).
         """
-        self.open()
+        # Before open(), which ends the STARTING state: the supervisor reads this flag as soon
+        # as the state changes.
         self._stats["realtime"] = set_realtime(self._config.output.realtime_priority)
+        self.open()
         # The loop allocates nothing that needs the cycle collector; a collection pass in the
         # middle of a tick would cost milliseconds, so it is frozen out for the loop's life.
         gc.collect()
@@ -333,6 +364,11 @@ class OutputLoop:
                 tick, sending_ns, self._input.fractions, (sending_ns - now_ns) / 1e9
             )
             now_ns = sending_ns
+        sent = selector.sent_fractions
+        if sent is not self._shared_fractions or selector.sent_kind != self._shared_kind:
+            # What goes out changed (a new input, a motor test, safe values): a new list.
+            self._shared_kind, self._shared_fractions = selector.sent_kind, sent
+            self._sent.write(selector.sent_kind, selector.test_index, sent)
         state = selector.state
         if state != counters[self._i_state]:
             counters[self._i_entered + state] += 1
@@ -364,12 +400,18 @@ class OutputLoop:
                 # Fixed rate: sleep to the tick, then take everything that arrived meanwhile.
                 # The kernel stamped each datagram as it arrived and the autopilot dated each
                 # input, so reading late costs no accuracy, and one wake-up per tick halves
-                # the loop's CPU against waking for every input too.
-                if delay_ns > 0:
+                # the loop's CPU against waking for every input too. The main process's few
+                # frames a second (and its end) wake the wait instead of a read every tick.
+                relay_fd = relay.fileno() if relay is not None and self._relay_open else -1
+                if delay_ns > 0 and relay_fd >= 0:
+                    if wait([relay_fd], (), (), delay_ns / 1e9)[0]:
+                        self._exchange_with_main(monotonic_ns())
+                        continue  # the tick keeps its time
+                elif delay_ns > 0:
                     sleep(delay_ns / 1e9)
                 now = monotonic_ns()
                 input_side.on_readable(now)
-                self._exchange_with_main(now)
+                self._exchange_with_main(now, relay_ready=delay_ns <= 0)
             elif delay_ns > 0:
                 # Immediate: wait for input, a frame to relay or the tick, whichever comes first.
                 link_fd = input_side.fd
@@ -405,12 +447,12 @@ class OutputLoop:
                 next_ns += missed * period_ns
                 counters[overruns_i] += missed
 
-    def _exchange_with_main(self, now_ns: int) -> bool:
-        """Write what the main process relayed to the autopilot link and progress the link;
-        False when the main process is gone (its end of the relay closed), once: the
-        shutdown flush starts now."""
+    def _exchange_with_main(self, now_ns: int, relay_ready: bool = True) -> bool:
+        """Write what the main process relayed to the autopilot link (``relay_ready``: there
+        may be some) and progress the link; False when the main process is gone (its end of
+        the relay closed), once: the shutdown flush starts now."""
         self._input.service(now_ns)
-        if not self._relay_open:
+        if not self._relay_open or not relay_ready:
             return True
         try:
             self._input.on_relay()
@@ -494,10 +536,11 @@ def run_in_process(
     snapshot: InputSnapshot,
     stats: LoopStats,
     relay: socket.socket | None,
+    sent: SentCommands | None = None,
 ) -> None:
     """Entry point of the loop's own process (spawned by the supervisor with the stop signals
     blocked, so that none can kill it before its handlers are in place)."""
-    loop = OutputLoop(setup, motor_tests, snapshot, stats, relay, watch_parent=True)
+    loop = OutputLoop(setup, motor_tests, snapshot, stats, relay, watch_parent=True, sent=sent)
     for signum in STOP_SIGNALS:
         # Any of them, to this process alone or to the whole group (a closed terminal, Ctrl-C,
         # systemd), ends in the shutdown flush.

@@ -27,6 +27,9 @@ class SlewLimiter:
                 raise ValueError(f"slew rate {rate!r} must be finite and >= 0")
         self._rates = list(zip(rise_per_s, fall_per_s, strict=True))
         self._values = [0.0] * len(self._rates)
+        self.limits = any(rate > 0.0 for rate in (*rise_per_s, *fall_per_s))
+        """Some output has a rate: without one, :meth:`apply` returns its targets unchanged,
+        and the loop need not call it."""
 
     @classmethod
     def for_definition(cls, definition: MixerDefinition) -> SlewLimiter:

@@ -15,6 +15,7 @@ from typing import Final
 from bridge.capture import read_capture
 from bridge.errors import ConfigError
 from bridge.escs import registry
+from bridge.plot.mcap_flight import read_mcap
 from bridge.plot.recording import RecordingFiles, StatusText, TlogEvents, read_tlog
 from bridge.plot.series import (
     DEFAULT_POLE_PAIRS,
@@ -29,6 +30,9 @@ from bridge.plot.spans import Span, armed_spans, bridge_spans, stopped_while_arm
 
 GUESS_FRAMES: Final = 5000
 """How many frames from the capture's start decide its family when none is named."""
+SOURCES: Final = ("auto", "capture", "mcap")
+"""What :func:`load_flight` reads: the candump log and the tlog (``capture``), the ``.mcap``, or
+(``auto``) the first two where either is there, else the ``.mcap``."""
 
 
 @dataclass(frozen=True)
@@ -94,16 +98,26 @@ def load_flight(
     ids: Sequence[int] | None = None,
     channels: Sequence[int] | None = None,
     pole_pairs: Sequence[int] | int = DEFAULT_POLE_PAIRS,
+    source: str = "auto",
 ) -> Flight:
-    """Read a recording's two files into a :class:`Flight`. ``protocol``: a family's name, or
-    "auto" for the one that reads most of the capture's first :data:`GUESS_FRAMES` frames.
-    ``pole_pairs``: one for every ESC, or one per ESC of ``ids``.
+    """Read a recording into a :class:`Flight`, from the files ``source`` names
+    (:data:`SOURCES`). ``protocol``: a family's name, or "auto" for the one that reads most of
+    the capture's first :data:`GUESS_FRAMES` frames. ``pole_pairs``: one for every ESC, or one
+    per ESC of ``ids``. An MCAP needs neither (it holds rpm, and names its family and ESCs).
 
     Raises:
         ConfigError: a file is missing or unreadable, the capture holds no frame any family
             reads, or ``channels``/``pole_pairs`` do not fit ``ids``.
         ValueError: ``protocol`` names no family.
     """
+    if source == "mcap" or (source == "auto" and not files.has_capture()):
+        if not files.mcap_path.is_file():
+            raise ConfigError(
+                f"recording {files.name} in {files.directory}: its MCAP {files.mcap_path.name} "
+                "is missing (esc-bridge run --record writes one beside the .log and .tlog)"
+            )
+        captured, events, recorded_ids = read_mcap(files.mcap_path)
+        return flight(files.name, captured, events, ids or recorded_ids, channels)
     files.check()
     if protocol == "auto":
         head = list(itertools.islice(read_capture(files.log_path), GUESS_FRAMES))

@@ -1,11 +1,12 @@
 """A recording's files, and what the plot needs from its tlog.
 
-A recording (:mod:`bridge.telemetry.recorder`) is two files named by its start time in one
-directory: the candump ``.log`` of every CAN frame (read by :mod:`bridge.capture`) and the ``.tlog``
-of the MAVLink traffic, each record an 8-byte big-endian µs wall-clock stamp and one frame as
-received or sent. From the tlog the plot takes the autopilot's HEARTBEATs (its arming state) and
-every STATUSTEXT (the bridge's own reports of its output state among them); the other messages are
-skipped by their ID without being decoded.
+A recording (:mod:`bridge.telemetry.recorder`) is three files named by its start time in one
+directory: the candump ``.log`` of every CAN frame (read by :mod:`bridge.capture`), the ``.tlog``
+of the MAVLink traffic and the ``.mcap`` (read by :mod:`bridge.plot.mcap_flight`); the plot
+draws from the first two, or from the ``.mcap`` alone. Each tlog record is an 8-byte big-endian
+µs wall-clock stamp and one frame as received or sent. From the tlog the plot takes the
+autopilot's HEARTBEATs (its arming state) and every STATUSTEXT (the bridge's own reports of its
+output state among them); the other messages are skipped by their ID without being decoded.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ NAME_PREFIX: Final = "esc-bridge-"
 """Every recording's files start so (:data:`bridge.telemetry.recorder.NAME_FORMAT`)."""
 LOG_SUFFIX: Final = ".log"
 TLOG_SUFFIX: Final = ".tlog"
+MCAP_SUFFIX: Final = ".mcap"
 MAV_AUTOPILOT_INVALID: Final = 8
 """The ``autopilot`` of a HEARTBEAT from no flight stack: the bridge's own, a ground station's."""
 MAV_MODE_FLAG_SAFETY_ARMED: Final = 0x80
@@ -75,7 +77,8 @@ class TlogEvents:
 
 @dataclass(frozen=True)
 class RecordingFiles:
-    """The two files of one recording: ``<name>.log`` and ``<name>.tlog`` in ``directory``."""
+    """The files of one recording: ``<name>.log``, ``<name>.tlog`` and ``<name>.mcap`` in
+    ``directory``."""
 
     directory: Path
     name: str
@@ -88,8 +91,16 @@ class RecordingFiles:
     def tlog_path(self) -> Path:
         return self.directory / f"{self.name}{TLOG_SUFFIX}"
 
+    @property
+    def mcap_path(self) -> Path:
+        return self.directory / f"{self.name}{MCAP_SUFFIX}"
+
+    def has_capture(self) -> bool:
+        """Whether the candump log or the tlog is there (then both are wanted)."""
+        return self.log_path.is_file() or self.tlog_path.is_file()
+
     def check(self) -> None:
-        """Both files are there.
+        """The candump log and the tlog are both there.
 
         Raises:
             ConfigError: naming the missing file.
@@ -104,7 +115,8 @@ class RecordingFiles:
 
 def find_recordings(directory: Path) -> tuple[RecordingFiles, ...]:
     """The recordings in ``directory`` (a ``--record`` directory), oldest first: every name
-    that has a ``.log`` or a ``.tlog`` (:meth:`RecordingFiles.check` tells whether both).
+    that has a ``.log``, a ``.tlog`` or an ``.mcap`` (:meth:`RecordingFiles.check` tells
+    whether the first two are both there).
 
     Raises:
         ConfigError: ``directory`` does not exist, is no directory, or holds no recording.
@@ -119,13 +131,13 @@ def find_recordings(directory: Path) -> tuple[RecordingFiles, ...]:
         path.stem
         for path in directory.iterdir()
         if path.name.startswith(NAME_PREFIX)
-        and path.suffix in (LOG_SUFFIX, TLOG_SUFFIX)
+        and path.suffix in (LOG_SUFFIX, TLOG_SUFFIX, MCAP_SUFFIX)
         and path.is_file()
     }
     if not names:
         raise ConfigError(
             f"{directory}: not a recording; expected {NAME_PREFIX}YYYYmmdd-HHMMSS{LOG_SUFFIX} "
-            f"and {TLOG_SUFFIX} in it, as esc-bridge run --record DIR writes"
+            f"and {TLOG_SUFFIX} (or {MCAP_SUFFIX}) in it, as esc-bridge run --record DIR writes"
         )
     return tuple(RecordingFiles(directory, name) for name in sorted(names))
 

@@ -28,7 +28,7 @@ from bridge.telemetry.payload import (
     HealthPayload,
     ZenohHealth,
 )
-from bridge.telemetry.reader import CanReader, Recorder, reader_filters
+from bridge.telemetry.reader import CanReader, Recorder, StateRecorder, reader_filters
 from bridge.telemetry.state import EscTable
 from bridge.telemetry.zenoh_out import TelemetrySources, ZenohOut
 
@@ -53,22 +53,21 @@ class Fanout:
         actuators_output: Callable[[], ActuatorsOutputPayload | None],
         shared_bus: Callable[[], can.BusABC | None] | None = None,
         recorder: Recorder | None = None,
-        read_back_commands: bool = True,
+        states: StateRecorder | None = None,
     ) -> None:
         """``shared_bus``: read the output loop's handle instead of opening one of our own.
 
         Our own handle receives only our ESCs' telemetry
         (:func:`~bridge.telemetry.reader.reader_filters`), unless ``recorder`` is given (the
-        recording wants every frame); with ``read_back_commands`` (the default) it receives the
-        bridge's own commands too, which the ESC state reads back for the actuators/output key. A
-        shared handle belongs to the output loop and is read as it was opened.
+        recording wants every frame). A shared handle belongs to the output loop and is read as it
+        was opened.
         """
         self._config = config
         self._family = registry.family(config.output.protocol)
         self.table = table
         self._shared_bus = shared_bus
         self._recorder = recorder
-        self._read_back_commands = read_back_commands
+        self._states = states
         self._own_bus: can.BusABC | None = None
         self.reader: CanReader | None = None
         self.mavlink = MavlinkTelemetry(config.mavlink, link, table)
@@ -106,7 +105,9 @@ class Fanout:
                 "CAN reader receives %s",
                 "every frame" if filters is None else f"what {len(filters)} filters pass",
             )
-        self.reader = CanReader(bus, self.table, self._family, self._recorder, reopen)
+        self.reader = CanReader(
+            bus, self.table, self._family, self._recorder, self._states, reopen=reopen
+        )
         self.reader.start()
         self.mavlink.start()
         if self.zenoh is not None:
@@ -150,7 +151,6 @@ class Fanout:
                 self._family,
                 self.table.node_ids,
                 recording=self._recorder is not None,
-                read_back_commands=self._read_back_commands,
             )
         except ValueRangeError as exc:  # a node ID learnt from an ESC that no filter can name
             log.warning("CAN reader receives every frame: %s", exc)

@@ -34,6 +34,7 @@ from typing import Any, ClassVar
 
 from bridge._compat import Self
 from bridge.errors import PayloadError
+from bridge.telemetry.json_schema import to_json
 from bridge.telemetry.state import EscSnapshot
 
 _OMIT_NONE = {"omit_none": True}
@@ -54,7 +55,7 @@ class Payload:
         Raises:
             ValueError: a number is NaN or infinite (JSON has neither).
         """
-        return json.dumps(_to_json(self), separators=(",", ":"), allow_nan=False).encode()
+        return json.dumps(to_json(self), separators=(",", ":"), allow_nan=False).encode()
 
     @classmethod
     def decode(cls, payload: bytes) -> Self:
@@ -225,6 +226,7 @@ class InputHealth:
     age_ms: float
     out_of_order: int
     unsigned: int
+    other_address: int
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -353,20 +355,6 @@ RECORDS: tuple[type[Payload], ...] = (
 
 
 # -- encoding and decoding, driven by the fields' types ---------------------------------------
-
-
-def _to_json(value: object) -> object:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {
-            f.name: _to_json(getattr(value, f.name))
-            for f in dataclasses.fields(value)
-            if not (f.metadata.get("omit_none") and getattr(value, f.name) is None)
-        }
-    if isinstance(value, tuple | list):
-        return [_to_json(item) for item in value]
-    if isinstance(value, dict):
-        return {name: _to_json(item) for name, item in value.items()}
-    return value
 
 
 _HINTS: dict[type, dict[str, Any]] = {}

@@ -1,20 +1,25 @@
 """The CAN receive edge: one named thread drains the bus into the decoders and the ESC state.
 
 The reader knows one ESC family (:class:`~bridge.escs.family.EscFamily`): it decodes each frame
-with it and hands the family's neutral telemetry, or the commands it read back, to the state.
+with it and hands the family's neutral telemetry to the state. The bridge's own commands are
+not read back: the output loop says what it sent (:mod:`bridge.daemon.commands_sent`).
 
 What reaches the reader depends on its handle (:func:`reader_filters`): with a recorder
 attached, everything on the bus, including the bridge's own commands (on socketcan and
 udp_multicast another handle of the same bus sees them), since the recording wants every
-frame; otherwise only our ESCs' telemetry, plus the bridge's commands while a feature reads
-them back. :class:`~bridge.telemetry.state.EscTable` keeps only telemetry from our ESCs either
-way. A malformed frame is counted against the ESC its ID names and dropped; nothing that
-arrives stops the reader. Frames the kernel dropped because the reader fell behind are
-counted too (:attr:`ReaderStats.kernel_drops`). An error frame (SocketCAN: what the controller
-says about the bus) is read by :mod:`bridge.can_errors` into :attr:`ReaderStats.controller`,
-the controller's state and fault counts. When its interface is deleted (a USB adapter
-unplugged) the reader's socket can never receive again: given ``reopen``, the reader opens the
-bus again, with a backoff that grows while the interface stays missing.
+frame; otherwise only our ESCs' telemetry. :class:`~bridge.telemetry.state.EscTable` keeps only
+telemetry from our ESCs either way. A malformed frame is counted against the ESC its ID names
+and dropped; nothing that arrives stops the reader. Frames the kernel dropped because the reader
+fell behind are counted too (:attr:`ReaderStats.kernel_drops`). An error frame (SocketCAN: what
+the controller says about the bus) is read by :mod:`bridge.can_errors` into
+:attr:`ReaderStats.controller`, the controller's state and fault counts. When its interface is
+deleted (a USB adapter unplugged) the reader's socket can never receive again: given
+``reopen``, the reader opens the bus again, with a backoff that grows while the interface stays
+missing.
+
+With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
+frame, the ESC's state after it (the commands reach it from
+:class:`~bridge.daemon.commands_sent.CommandsSent`).
 """
 
 from __future__ import annotations
@@ -24,8 +29,9 @@ import logging
 import random
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import can
 from can.typechecking import CanFilter
@@ -35,7 +41,7 @@ from bridge.can_errors import ControllerErrors, ControllerState, decode_error_fr
 from bridge.can_io import receive_drops
 from bridge.errors import BridgeError, CodecError
 from bridge.escs.family import EscFamily
-from bridge.telemetry.state import EscTable
+from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +56,18 @@ GONE_ERRNOS = frozenset({errno.ENODEV, errno.ENXIO})
 _BUS_OFF = ControllerState.BUS_OFF
 
 Recorder = Callable[[can.Message], None]
+"""Takes every frame read (the candump log)."""
+
+
+class StateRecorder(Protocol):
+    """Takes the ESC state's changes as they happen (the MCAP recording). Called on the thread
+    that feeds the ESC state: keep it short (an append)."""
+
+    def esc(self, snapshot: EscSnapshot, time_s: float) -> None:
+        """An ESC's state right after a telemetry frame that arrived at ``time_s`` (wall)."""
+
+    def commands(self, commands: Sequence[LastCommand], time_s: float) -> None:
+        """Every ESC's last command, right after commands sent at ``time_s`` (wall) were taken."""
 
 
 @dataclass
@@ -76,19 +94,19 @@ class ReaderStats:
 
 
 def reader_filters(
-    family: EscFamily, esc_ids: Collection[int], *, recording: bool, read_back_commands: bool
+    family: EscFamily, esc_ids: Collection[int], *, recording: bool
 ) -> list[CanFilter] | None:
     """The filters for the reader's own bus handle: None (every frame) when ``recording``,
-    since the recording wants every frame; else our ESCs' telemetry, plus the bridge's own
-    commands with ``read_back_commands`` (the ESC state's ``command`` for the actuators/output
-    key). See the family's :meth:`~bridge.escs.family.EscFamily.reader_filters`.
+    since the recording wants every frame; else our ESCs' telemetry only (the bridge's own
+    commands come from the output loop: :mod:`bridge.daemon.commands_sent`). See the family's
+    :meth:`~bridge.escs.family.EscFamily.reader_filters`.
 
     Raises:
         ValueRangeError: an ESC ID the protocol cannot have.
     """
     if recording:
         return None
-    return family.reader_filters(esc_ids, read_back_commands)
+    return family.reader_filters(esc_ids, False)
 
 
 class CanReader:
@@ -114,15 +132,18 @@ class CanReader:
         table: EscTable,
         family: EscFamily,
         recorder: Recorder | None = None,
+        states: StateRecorder | None = None,
         reopen: Callable[[], object] | None = None,
     ) -> None:
-        """``reopen``: opens the bus again (``bus`` then gives the new handle) after its
-        interface was gone; raises :class:`~bridge.errors.BridgeError` while it cannot."""
+        """``recorder`` takes every frame read, ``states`` the ESC state's changes;
+        ``reopen`` opens the bus again (``bus`` then gives the new handle) after its interface
+        was gone, and raises :class:`~bridge.errors.BridgeError` while it cannot."""
         self._bus_source = bus if callable(bus) else lambda: bus
         self._reopen = reopen
         self._table = table
         self._family = family
         self._recorder = recorder
+        self._states = states
         self.stats = ReaderStats()
         # Drops of handles the reader read before the current one (a reopened shared handle
         # starts counting from 0 again), and the current handle's last count.
@@ -215,7 +236,10 @@ class CanReader:
         if frame is None:
             return
         telemetry = family.telemetry(frame)
-        if telemetry is None:
-            self._table.note_commands(family.commands_seen(frame))
-        elif self._table.ingest(telemetry, now_ns):
+        states = self._states
+        if telemetry is not None and self._table.ingest(telemetry, now_ns):
             stats.telemetry += 1
+            if states is not None:
+                snapshot = self._table.snapshot_of(telemetry.node_id, now_ns)
+                if snapshot is not None:
+                    states.esc(snapshot, msg.timestamp or time.time())

@@ -1,15 +1,19 @@
-"""Recording a session to disk: every CAN frame as a candump log, the MAVLink traffic as a tlog.
+"""Recording a session to disk: every CAN frame as a candump log, the MAVLink traffic as a tlog,
+and the flight as an MCAP.
 
-:meth:`Recording.open` creates, in a directory, two files named by the start time::
+:meth:`Recording.open` creates, in a directory, three files named by the start time::
 
     esc-bridge-20240405-193012.log    candump -L lines: (1712345678.123456) can0 1F4E5201#B90B4C04
     esc-bridge-20240405-193012.tlog   MAVLink: 8-byte big-endian µs timestamp + raw message, ...
+    esc-bridge-20240405-193012.mcap   JSON channels: ESC telemetry, commands, outputs, logs
 
 The ``.log`` is what ``esc-bridge decode`` and python-can's ``CanutilsLogReader`` read; the
-``.tlog`` is what MAVProxy, QGroundControl and pymavlink read. :meth:`Recording.can` is the CAN
-reader's recorder: it runs on the reader thread for every frame (thousands a second), so it
-only formats a line and appends it to a list. A writer thread moves the lines to the file at
-least once a second and flushes both files; :meth:`Recording.close` writes the rest.
+``.tlog`` is what MAVProxy, QGroundControl and pymavlink read; the ``.mcap`` is what Foxglove and
+PlotJuggler open (:mod:`bridge.telemetry.mcap_out` writes it, :attr:`Recording.mcap`).
+:meth:`Recording.can` is the CAN reader's recorder: it runs on the reader thread for every
+frame (thousands a second), so it only formats a line and appends it to a list. A writer thread
+moves the lines to the file at least once a second and flushes both files;
+:meth:`Recording.close` writes the rest.
 
 The tlog is handed out as a plain binary file (:attr:`Recording.tlog`): the MAVLink link writes
 its records itself, under its own lock.
@@ -29,6 +33,8 @@ import can
 from bridge._compat import Self
 from bridge.config import CanConfig
 from bridge.errors import ConfigError
+from bridge.mavlink.traffic import TrafficReader
+from bridge.telemetry.mcap_out import McapRecording
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +43,7 @@ FLUSH_INTERVAL_S = 0.5
 NAME_FORMAT = "esc-bridge-%Y%m%d-%H%M%S"
 """Local start time; a second recording started within the same second gets ``-1``, ``-2``..."""
 DEFAULT_CHANNEL = "can0"
+MCAP_SUFFIX = ".mcap"
 
 # Linux SocketCAN's error-frame flag and the bus-error class, as candump writes error frames
 # (python-can's CanutilsLogReader reads a frame with both bits as an error frame).
@@ -103,19 +110,29 @@ class _Writer:
 
 
 class Recording:
-    """A candump ``.log`` of every CAN frame and a MAVLink ``.tlog``, named by start time.
+    """A candump ``.log`` of every CAN frame, a MAVLink ``.tlog`` and an ``.mcap``, named by
+    start time.
 
     A context manager; :meth:`close` tolerates a second call.
     """
 
     def __init__(
-        self, log_path: Path, tlog_path: Path, log_file: TextIO, tlog: BinaryIO, channel: str
+        self,
+        log_path: Path,
+        tlog_path: Path,
+        log_file: TextIO,
+        tlog: BinaryIO,
+        channel: str,
+        mcap: McapRecording,
     ) -> None:
         """Use :meth:`open`."""
         self.log_path = log_path
         """The candump log."""
         self.tlog_path = tlog_path
         """The MAVLink tlog."""
+        self.mcap_path = log_path.with_suffix(MCAP_SUFFIX)
+        self.mcap = mcap
+        """The MCAP: fed by the CAN reader, the MAVLink link, the supervisor and the log."""
         self.tlog = tlog
         """The tlog file, opened ``wb``: whoever writes MAVLink appends its records here."""
         self.channel = channel
@@ -127,10 +144,19 @@ class Recording:
         self._writer.thread.start()
 
     @classmethod
-    def open(cls, directory: Path, can_config: CanConfig | None = None) -> Recording:
-        """Create ``directory`` if needed and both files in it, named by the current time.
+    def open(
+        cls,
+        directory: Path,
+        can_config: CanConfig | None = None,
+        *,
+        traffic: TrafficReader | None = None,
+        metadata: dict[str, str] | None = None,
+    ) -> Recording:
+        """Create ``directory`` if needed and the three files in it, named by the current time.
 
         The candump channel name is ``can_config.channel`` (``can0`` without a config).
+        ``traffic`` reads the MAVLink frames for the MCAP (None: the MCAP has none of them);
+        ``metadata``: its ``esc-bridge`` record (:func:`bridge.telemetry.mcap_channels.metadata`).
 
         Raises:
             ConfigError: naming the directory, when it or a file in it cannot be created.
@@ -152,10 +178,8 @@ class Recording:
             except FileExistsError:
                 continue
             except OSError as exc:
-                raise ConfigError(
-                    f"recording directory {directory}: cannot create {log_path.name}: "
-                    f"{exc.strerror or exc}"
-                ) from exc
+                raise _cannot_create(directory, log_path, exc) from exc
+            mcap_path = log_path.with_suffix(MCAP_SUFFIX)
             try:
                 tlog = tlog_path.open("xb")
             except OSError as exc:
@@ -163,12 +187,24 @@ class Recording:
                 log_path.unlink(missing_ok=True)
                 if isinstance(exc, FileExistsError):
                     continue
-                raise ConfigError(
-                    f"recording directory {directory}: cannot create {tlog_path.name}: "
-                    f"{exc.strerror or exc}"
-                ) from exc
-            log.info("recording CAN to %s and MAVLink to %s", log_path, tlog_path)
-            return cls(log_path, tlog_path, log_file, tlog, channel)
+                raise _cannot_create(directory, tlog_path, exc) from exc
+            try:
+                mcap_file = mcap_path.open("xb")
+            except OSError as exc:
+                for file, path in ((log_file, log_path), (tlog, tlog_path)):
+                    file.close()
+                    path.unlink(missing_ok=True)
+                if isinstance(exc, FileExistsError):
+                    continue
+                raise _cannot_create(directory, mcap_path, exc) from exc
+            log.info(
+                "recording CAN to %s, MAVLink to %s and both to %s",
+                log_path,
+                tlog_path.name,
+                mcap_path.name,
+            )
+            mcap = McapRecording(mcap_file, traffic, metadata)
+            return cls(log_path, tlog_path, log_file, tlog, channel, mcap)
         raise ConfigError(
             f"recording directory {directory}: {stem}.log and {_MAX_SUFFIX - 1} more exist"
         )
@@ -191,10 +227,11 @@ class Recording:
             self._writer.write()
 
     def close(self) -> None:
-        """Write the rest, flush and close both files; a second call does nothing."""
+        """Write the rest, flush and close the files; a second call does nothing."""
         if self._closed:
             return
         self._closed = True
+        self.mcap.close()
         writer = self._writer
         writer.stop.set()
         writer.thread.join()
@@ -220,6 +257,12 @@ class Recording:
         if not getattr(self, "_closed", True):
             log.warning("recording %s was not closed; closing it now", self.log_path)
             self.close()
+
+
+def _cannot_create(directory: Path, path: Path, exc: OSError) -> ConfigError:
+    return ConfigError(
+        f"recording directory {directory}: cannot create {path.name}: {exc.strerror or exc}"
+    )
 
 
 def _channel_name(channel: str) -> str:

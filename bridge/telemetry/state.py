@@ -103,6 +103,17 @@ class EscSnapshot:
         return max(known) if known else None
 
 
+@dataclass(frozen=True, slots=True)
+class LastCommand:
+    """One ESC's last command, as the ESC state took it (:meth:`EscTable.note_commands`)."""
+
+    motor: int
+    node_id: int
+    value: float | None
+    """None: no command seen yet."""
+    unit: str
+
+
 class _Esc:
     """The mutable state of one ESC; only :class:`EscTable` touches it, under its lock."""
 
@@ -251,10 +262,12 @@ class EscTable:
             esc.last_ns = now_ns
         return True
 
-    def note_commands(self, commands: Sequence[CommandSeen]) -> None:
-        """Take the commands read back from one frame (the ESC's last command)."""
+    def note_commands(self, commands: Sequence[CommandSeen]) -> bool:
+        """Take the commands read back from one frame (the ESC's last command). False if none
+        was for one of our ESCs."""
         if not commands:
-            return
+            return False
+        taken = False
         with self._lock:
             for seen in commands:
                 if seen.channel is not None:
@@ -263,6 +276,16 @@ class EscTable:
                     esc = self._by_node.get(seen.node_id) if seen.node_id is not None else None
                 if esc is not None:
                     esc.command, esc.command_unit = seen.value, seen.unit
+                    taken = True
+        return taken
+
+    def last_commands(self) -> tuple[LastCommand, ...]:
+        """Every ESC's last command, in motor order."""
+        with self._lock:
+            return tuple(
+                LastCommand(esc.motor, esc.node_id, esc.command, esc.command_unit)
+                for esc in self._escs
+            )
 
     def count_error(self, node_id: int | None, now_ns: int) -> None:
         """Count a malformed frame (bad CRC, DLC, tail byte) from ``node_id`` (None: unknown)."""
@@ -281,6 +304,12 @@ class EscTable:
         """Every ESC's state as of ``now_ns``, in motor order."""
         with self._lock:
             return tuple(self._snapshot(esc, now_ns) for esc in self._escs)
+
+    def snapshot_of(self, node_id: int, now_ns: int) -> EscSnapshot | None:
+        """The state of the ESC at ``node_id`` as of ``now_ns``; None if it is not one of ours."""
+        with self._lock:
+            esc = self._by_node.get(node_id)
+            return None if esc is None else self._snapshot(esc, now_ns)
 
     # -- under the lock ---------------------------------------------------------------------
 

@@ -855,7 +855,7 @@ def test_run_and_check_agree(
         assert daemon.stop() == 0, daemon.output
         if extra[:1] == ["--record"]:
             recorded = sorted(p.suffix for p in Path(fill(extra[1])).iterdir())
-            assert recorded == [".log", ".tlog"]
+            assert recorded == [".log", ".mcap", ".tlog"]
         return
     assert daemon.proc.wait(30) == 2
     daemon.stop()

@@ -301,7 +301,7 @@ def test_exec_start_runs_as_a_system_user_in_the_units_sandbox(work: Path, recor
     cached = list((work / "var-cache" / one("CacheDirectory") / "mavlink").glob("esc_bridge-*.py"))
     assert len(cached) == 1 and cached[0].stat().st_uid == uid, cached
     recorded = sorted(p.suffix for p in (work / "var-log" / one("LogsDirectory")).iterdir())
-    assert recorded == ([".log", ".tlog"] if recording else []), recorded
+    assert recorded == ([".log", ".mcap", ".tlog"] if recording else []), recorded
 
 
 def test_the_page_shows_the_units_lines() -> None:

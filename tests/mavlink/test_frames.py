@@ -465,6 +465,29 @@ def test_a_whole_datagram_leaves_nothing_pending() -> None:
     assert (whole.pending, whole.junk_bytes) == (0, 8)
 
 
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("cut", [1, 2, 9])
+def test_a_frame_cut_short_in_one_datagram_is_never_completed_by_the_next(
+    version: int, cut: int
+) -> None:
+    """An armed HEARTBEAT cut ``cut`` bytes short, then a datagram that starts with the
+    missing bytes (from anyone): as a stream that is the frame; as datagrams it is junk."""
+    module: Any = mavlink1 if version == 1 else DIALECT
+    mav: Any = module.MAVLink(None, srcSystem=1, srcComponent=1)
+    armed = mav.heartbeat_encode(2, 3, 128 | 1, 0, 4).pack(mav)
+    first, second = armed[:-cut], armed[-cut:] + b"\x00garbage\xfd\x01"
+
+    stream = scanner_for()
+    assert stream.feed(first) == []
+    assert [f.raw for f in stream.feed(second)] == [armed]  # a byte stream's reads may cut
+
+    datagrams = scanner_for()
+    assert datagrams.feed(first, whole=True) == []
+    assert datagrams.feed(second, whole=True) == []
+    assert datagrams.pending == 0 and datagrams.frames == 0
+    assert datagrams.junk_bytes == len(first) + len(second)
+
+
 def test_unknown_ids_pass_unchecked_or_are_junk() -> None:
     mav: Any = DIALECT.MAVLink(None, srcSystem=1, srcComponent=1)
     status = mav.statustext_encode(4, b"hello").pack(mav)  # STATUSTEXT (253), unknown below

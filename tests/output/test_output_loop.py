@@ -20,7 +20,14 @@ from bridge.escs import ckesc
 from bridge.escs.ckesc.driver import CkescDriver
 from bridge.mavlink.relay import relay_pair
 from bridge.output.autopilot_input import InputSetup
-from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock
+from bridge.output.mailbox import (
+    SENT_COMMANDS,
+    SENT_SAFE,
+    InputSnapshot,
+    LoopStats,
+    MotorTestBlock,
+    SentCommands,
+)
 from bridge.output.output_loop import CommandSelector, LoopSetup, OutputLoop
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits
 from bridge.output.slew import SlewLimiter
@@ -113,6 +120,7 @@ class Rig:
     main_end: socket.socket
     autopilot: Autopilot
     observer: can.BusABC
+    sent: SentCommands
     now_ns: int = 0
     running: bool = True
 
@@ -158,12 +166,13 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     stats, motor_tests = LoopStats(), MotorTestBlock(n)
     loop_end, main_end = relay_pair()
     setup = LoopSetup(checked.config, InputSetup(checked.mixer, checked.valid_range, None))
-    loop = OutputLoop(setup, motor_tests, InputSnapshot(n), stats, loop_end)
+    sent = SentCommands(n)
+    loop = OutputLoop(setup, motor_tests, InputSnapshot(n), stats, loop_end, sent=sent)
     observer = can.Bus(interface="virtual", channel=channel)
     loop.open()
     autopilot = Autopilot(port)
     try:
-        yield Rig(loop, stats, motor_tests, main_end, autopilot, observer)
+        yield Rig(loop, stats, motor_tests, main_end, autopilot, observer, sent)
     finally:
         autopilot.close()
         loop.close()
@@ -187,6 +196,28 @@ def test_tick_no_input_then_disarmed_then_armed(rig: Rig) -> None:
     assert rig.tick() == SAFE
     assert rig.state() == LoopState.DISARMED
     assert rig.stats["ticks"] == rig.stats["frames_sent"] == 4
+
+
+def test_tick_shares_what_it_sent_when_that_changes(rig: Rig) -> None:
+    """The main process learns the commands from the loop (no read-back off the bus): a new
+    record when what goes out changes, none for a tick that repeats the last."""
+    assert rig.tick() == SAFE
+    record = rig.sent.read()
+    assert record is not None and record.kind == SENT_SAFE
+    assert rig.tick() == SAFE
+    assert rig.sent.seq() == record.seq
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    record = rig.sent.read()
+    assert record is not None and record.kind == SENT_COMMANDS
+    assert record.fractions == pytest.approx([t / 2000 for t in THROTTLES])
+    assert rig.tick() == THROTTLES  # the same input
+    assert rig.sent.seq() == record.seq
+    rig.heartbeat(armed=False)
+    assert rig.tick() == SAFE
+    record = rig.sent.read()
+    assert record is not None and record.kind == SENT_SAFE
 
 
 def test_tick_stale_input_stops_the_motors_until_a_fresh_one(rig: Rig) -> None:

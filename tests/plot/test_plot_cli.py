@@ -149,3 +149,32 @@ def test_nothing_but_the_plot_command_imports_matplotlib() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
     )
     assert result.stdout.strip() == "[]"
+
+
+def test_a_recording_is_drawn_from_its_mcap_alone(recorded: Path, tmp_path: Path) -> None:
+    (files,) = find_recordings(recorded)
+    shutil.copy(files.mcap_path, tmp_path)
+    result = esc_bridge("plot", str(tmp_path))
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith(f"{files.name}: 4 ESCs (") and "1 armed" in lines[0], lines
+    assert len(lines) == 7 and (tmp_path / f"{files.name}-plot" / "esc-1.png").is_file()
+
+    # The same flight as its candump log and tlog show it.
+    (mcap_files,) = find_recordings(tmp_path)
+    from_mcap, from_capture = load_flight(mcap_files), load_flight(files, source="capture")
+    assert from_mcap.can.family == from_capture.can.family
+    (armed,), (armed_capture,) = from_mcap.spans_of(ARMED), from_capture.spans_of(ARMED)
+    assert armed.end_s - armed.start_s == pytest.approx(armed_capture.end_s - armed_capture.start_s)
+    for esc, capture in zip(from_mcap.escs, from_capture.escs, strict=True):
+        assert esc.motor == esc.node_id == capture.node_id  # the MCAP names motor and ESC
+        assert esc.telemetry_frames == capture.telemetry_frames
+        # ±1: from erpm the ESC state truncates (int), the capture's series round.
+        assert esc.rpm.max_abs() == pytest.approx(capture.rpm.max_abs(), abs=1)
+        assert list(esc.commands) == list(capture.commands)
+        unit = next(iter(esc.commands))
+        assert max(esc.commands[unit].values) == max(capture.commands[unit].values)
+    assert [t.text for t in from_mcap.texts] == [t.text for t in from_capture.texts]
+    # Asked for a source that is not there: it says which file is missing.
+    result = esc_bridge("plot", str(tmp_path), "--source", "capture")
+    assert result.returncode == 2 and "its CAN capture" in result.stderr

@@ -104,6 +104,7 @@ HEALTH = HealthPayload(
         age_ms=3.2,
         out_of_order=0,
         unsigned=0,
+        other_address=0,
     ),
     link=LinkHealth(relay_dropped=0, sent=20, send_dropped=0, reconnects=1),
     escs_online=4,

@@ -185,6 +185,7 @@ def test_health_nested_fields() -> None:
                 "age_ms",
                 "out_of_order",
                 "unsigned",
+                "other_address",
             ]
         ),
         "link": ["reconnects", "relay_dropped", "send_dropped", "sent"],

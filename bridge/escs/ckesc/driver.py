@@ -27,12 +27,19 @@ class CkescDriver:
         self._groups = sorted({index // 4 + 1 for index in self._channel_index})
         self._transfer_ids = uavcan_v0.TransferIds()
         self._zeros = [0.0] * len(self._channel_index)
+        self._fractions: Sequence[float] = ()  # whose throttles are in self._throttles
 
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
+        # The throttles change with the input, not the tick: a tick that repeats the last
+        # input only encodes (its transfer IDs are new). NaN never equals itself: recomputed.
+        if fractions != self._fractions:
+            self._fractions = ()  # until every throttle is written: a raise leaves none cached
+            throttles = self._throttles
+            full_scale = self._full_scale
+            for index, fraction in zip(self._channel_index, fractions, strict=True):
+                throttles[index] = int(unit_fraction(fraction) * full_scale + 0.5)
+            self._fractions = list(fractions)
         throttles = self._throttles
-        full_scale = self._full_scale
-        for index, fraction in zip(self._channel_index, fractions, strict=True):
-            throttles[index] = int(unit_fraction(fraction) * full_scale + 0.5)
         if self._command == "12b":
             next_id = self._transfer_ids.next
             return [

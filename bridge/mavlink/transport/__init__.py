@@ -27,7 +27,9 @@ Kinds (the URL forms of :data:`~bridge.mavlink.endpoints.ACCEPTED_URL_FORMS`, pa
 :func:`~bridge.mavlink.endpoints.parse_url`):
 
 * ``udpin:HOST:PORT`` binds there and replies to whoever sent the latest datagram, as
-  pymavlink does; until a datagram arrives there is nobody to send to.
+  pymavlink does, or to the peer its reader names with
+  :meth:`~AutopilotTransport.reply_to` (the autopilot, once known); until a datagram arrives
+  there is nobody to send to.
 * ``udpout:HOST:PORT`` sends there and receives the replies on the same socket.
 * ``tcp:HOST:PORT`` connects there, without blocking: the connect is started, and completed
   (or given up after 2 s without an answer) by :meth:`~AutopilotTransport.service`.
@@ -35,6 +37,10 @@ Kinds (the URL forms of :data:`~bridge.mavlink.endpoints.ACCEPTED_URL_FORMS`, pa
   old one (an autopilot that restarted reconnects before its old connection times out).
 * ``serial:DEVICE[:BAUD]`` opens a terminal device raw, 8N1, no flow control; a helper thread
   does the reopening, since a USB adapter's driver sleeps in open() (:class:`SerialTransport`).
+
+A datagram transport (``datagrams``) returns one whole datagram per read, and says who sent it
+(``sender``): its reader scans each datagram on its own and may judge frames by their sender.
+A stream's reads cut frames anywhere, and its reader carries a partial frame to the next read.
 
 Clocks: every input is stamped with ``time.monotonic_ns()``. A UDP datagram carries the kernel's
 receive time (``SO_TIMESTAMPNS``), so its stamp says when it arrived even when the loop reads it

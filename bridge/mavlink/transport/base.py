@@ -8,7 +8,7 @@ import socket
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Final, cast
+from typing import ClassVar, Final, cast
 
 from bridge.errors import LinkError
 from bridge.mavlink.endpoints import Endpoint
@@ -86,10 +86,16 @@ class AutopilotTransport(ABC):
 
     endpoint: Endpoint
     stats: TransportStats
+    datagrams: ClassVar[bool] = False
+    """Each :meth:`recv` returns one whole datagram (UDP), so a frame never spans two reads and
+    a reader scans each on its own; False for a byte stream, whose reads cut frames anywhere."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
         self.stats = TransportStats()
+        self.sender: tuple[str, int] | None = None
+        """Datagrams: the address the datagram :meth:`recv` returned last came from. None on a
+        stream, and before the first datagram."""
         # True until a subclass has opened what it needs: a half-built transport has nothing
         # to close and must not warn when collected.
         self._closed = True
@@ -119,6 +125,16 @@ class AutopilotTransport(ABC):
     def send(self, frame: bytes) -> bool:
         """Write one frame without blocking; False when it was dropped (counted in
         ``stats.frames_dropped``). Never raises for link trouble."""
+
+    @property
+    def configured_peer(self) -> tuple[str, int] | None:
+        """``udpout``: the address it sends to, resolved; None for every other kind."""
+        return None
+
+    def reply_to(self, peer: tuple[str, int] | None) -> None:
+        """``udpin``: send to ``peer`` from now on, whoever else sends to us; None: to the
+        sender of the latest datagram again (the default). Nothing for every other kind."""
+        return
 
     def wants_write(self) -> bool:
         """Bytes are pending: poll :meth:`fileno` for POLLOUT too and call :meth:`service`

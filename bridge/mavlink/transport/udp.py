@@ -51,6 +51,8 @@ def _wall_minus_monotonic_ns() -> int:
 class _DatagramTransport(AutopilotTransport):
     """UDP: one socket, open from start to close, one datagram per read, kernel timestamps."""
 
+    datagrams = True
+
     def __init__(self, endpoint: Endpoint, bind: tuple[str, int] | None) -> None:
         super().__init__(endpoint)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -97,6 +99,7 @@ class _DatagramTransport(AutopilotTransport):
                 wall_ns = seconds * _NS_PER_S + nanoseconds
                 stamp_ns = wall_ns - _wall_minus_monotonic_ns()
                 received_ns = min(max(stamp_ns, self._empty_at_ns), now_ns)
+        self.sender = sender
         self._on_datagram(sender)
         self.stats.reads += 1
         self.stats.bytes_in += len(data)
@@ -130,7 +133,8 @@ class _DatagramTransport(AutopilotTransport):
 
 
 class UdpInTransport(_DatagramTransport):
-    """``udpin``: bound to HOST:PORT; replies go to the sender of the latest datagram."""
+    """``udpin``: bound to HOST:PORT; replies go to the sender of the latest datagram, or to the
+    peer given to :meth:`reply_to` (the autopilot's address, once its reader knows it)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         """Raises:
@@ -138,10 +142,17 @@ class UdpInTransport(_DatagramTransport):
         """
         super().__init__(endpoint, bind=resolve(endpoint, socket.SOCK_DGRAM))
         self._senders_logged: set[tuple[str, int]] = set()
+        self._pinned = False
         log.info("MAVLink %s listening", endpoint.url)
 
+    def reply_to(self, peer: tuple[str, int] | None) -> None:
+        self._pinned = peer is not None
+        if peer is not None and peer != self._peer:
+            self._peer = peer
+            log.info("MAVLink %s: replying to %s:%d", self.endpoint.url, *peer)
+
     def _on_datagram(self, sender: tuple[str, int]) -> None:
-        if sender == self._peer:
+        if sender == self._peer or self._pinned:
             return
         self._peer = sender
         # Two senders taking turns would otherwise log every datagram.
@@ -161,3 +172,7 @@ class UdpOutTransport(_DatagramTransport):
         super().__init__(endpoint, bind=None)  # bound to a free port by the first send
         self._peer = peer
         log.info("MAVLink %s sending to %s:%d", endpoint.url, *peer)
+
+    @property
+    def configured_peer(self) -> tuple[str, int] | None:
+        return self._peer

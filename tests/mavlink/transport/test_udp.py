@@ -65,6 +65,54 @@ def test_udpin_replies_to_the_latest_sender(opened: Open) -> None:
         second.close()
 
 
+def test_udpin_names_each_sender_and_replies_where_its_reader_says(opened: Open) -> None:
+    """Its reader (the loop's input side) learns who sent each datagram, and pins the replies
+    to the autopilot once it knows it: a later datagram from anyone else no longer steals them."""
+    port = free_port()
+    server = opened(f"udpin:127.0.0.1:{port}")
+    assert server.transport.datagrams and server.transport.sender is None
+    assert server.transport.configured_peer is None
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for sock in (autopilot, other):
+            sock.bind(("127.0.0.1", 0))
+            sock.settimeout(TIMEOUT_S)
+        autopilot.sendto(b"one", ("127.0.0.1", port))
+        receive_datagram(server)
+        assert server.transport.sender == autopilot.getsockname()
+        server.transport.reply_to(autopilot.getsockname())
+        other.sendto(b"two", ("127.0.0.1", port))
+        receive_datagram(server)
+        assert server.transport.sender == other.getsockname()
+        assert server.send(b"to the autopilot")
+        assert autopilot.recv(100) == b"to the autopilot"
+
+        server.transport.reply_to(None)  # following the latest sender again
+        other.sendto(b"three", ("127.0.0.1", port))
+        receive_datagram(server)
+        assert server.send(b"to other")
+        assert other.recv(100) == b"to other"
+    finally:
+        autopilot.close()
+        other.close()
+
+
+def test_udpout_names_its_configured_peer_and_streams_have_no_sender(opened: Open) -> None:
+    port = free_port()
+    client = opened(f"udpout:localhost:{port}")
+    assert client.transport.datagrams
+    assert client.transport.configured_peer == ("127.0.0.1", port)
+    client.transport.reply_to(("127.0.0.1", 1))  # nothing to steer: it sends to its peer
+    assert client.transport.configured_peer == ("127.0.0.1", port)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        stream = opened(f"tcp:127.0.0.1:{listener.getsockname()[1]}")
+        assert not stream.transport.datagrams
+        assert stream.transport.sender is None and stream.transport.configured_peer is None
+
+
 def test_udp_stamps_are_kernel_arrival_times_on_the_monotonic_clock(opened: Open) -> None:
     port = free_port()
     server = opened(f"udpin:127.0.0.1:{port}")
