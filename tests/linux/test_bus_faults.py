@@ -96,7 +96,7 @@ def a_bridge_through_every_fault() -> dict[str, Any]:
         # its own, sends on.
         phase("main process stopped")
         bridge.send(signal.SIGSTOP)
-        flood = guest.cangen(channel, "-g", "1", "-I", "004E5201", "-L", "8", "-n", "3000")
+        flood = guest.cangen(channel, "-e", "-g", "1", "-I", "004E5201", "-L", "8", "-n", "3000")
         took_ms = _commands_flow(channel, "while the main process is stopped")
         guest.wait_until(lambda: not flood.running(), WAIT_S, "cangen's 3000 frames")
         bridge.send(signal.SIGCONT)
