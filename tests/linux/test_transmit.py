@@ -56,7 +56,15 @@ def ticks_through_a_hold(
     phase = 0
     tick = 0
     end_s = before_s + hold_s + delay_ms / 1000 + after_s
-    while (now := time.monotonic() - start) < end_s or phase < 2:
+    ending = threading.Thread()
+
+    def going_on(now: float) -> bool:
+        """Until the end, and on while the hold has not ended or the frames are not moving yet
+        (tc ends the hold seconds late in a loaded host's guest); 30 s more at most."""
+        late = phase < 2 or ending.is_alive() or tx.state != TxState.MOVING
+        return now < end_s or (late and now < end_s + 30)
+
+    while going_on(now := time.monotonic() - start):
         if phase == 0 and now >= before_s:
             _tc(channel, "add", "netem", "delay", f"{delay_ms}ms", "limit", "100000")
             held_at = time.monotonic() - start
@@ -64,7 +72,8 @@ def ticks_through_a_hold(
         elif phase == 1 and now >= held_at + hold_s:
             # In a thread: the ticks go on while tc runs (seconds, on a loaded host's guest).
             args = ("change", "netem", "delay", "0ms", "limit", "100000")
-            threading.Thread(target=_tc, args=(channel, *args)).start()
+            ending = threading.Thread(target=_tc, args=(channel, *args))
+            ending.start()
             phase = 2
         wall = time.time()
         sent = tx.send_tick(_frames(tick, frames_per_tick), time.monotonic_ns())
@@ -106,15 +115,20 @@ def test_a_hold_delivers_at_most_one_tick_late(linux: Kernel) -> None:
         after_s=0.5,
     )  # fmt: skip
     # Every frame written arrived, in order of writing; only the tick written as the hold began
-    # came late (by the hold), and the loop wrote nothing behind it.
-    assert found["received"] == found["written"]
-    assert found["late"] == 8
-    assert 0.9 < found["max_late_s"] < 1.5
-    assert found["most_in_flight"] == 8
-    assert found["probes"] == 0
+    # came late (by the hold), and the loop wrote nothing behind it. Where tc's change that ends
+    # the hold takes effect late (seconds, in a loaded host's guest), the tick written after the
+    # first one's echo is held a whole hold again: a second spell, one tick late again. So each
+    # spell stuck is one tick late, and never more than one tick is in flight.
+    assert found["received"] == found["written"], found
+    states = [state for _, state in found["states"]]
+    spells = states.count("STUCK")
+    assert spells >= 1 and states == ["MOVING", "STUCK"] * spells + ["MOVING"], found
+    assert found["late"] == 8 * spells, found
+    assert 0.9 < found["max_late_s"] < 1.5, found
+    assert found["most_in_flight"] == 8, found
+    assert found["probes"] == 0, found
     # Held back for the second the first tick's echo took, reported stuck, moving again after.
-    assert found["ticks_held"] > 200
-    assert [state for _, state in found["states"]] == ["MOVING", "STUCK", "MOVING"]
+    assert found["ticks_held"] > 200, found
     stuck_at = found["states"][1][0] - found["held_at"]
     assert 0.095 <= stuck_at < 0.9, found  # times rounded to ms
     assert found["sndbuf"] == max(4608, 8 * CAN_FRAME_TRUESIZE)
