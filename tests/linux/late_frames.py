@@ -77,7 +77,9 @@ def hold_through_a_disarm(
     else:
         bridge = guest.start([guest.ESC_BRIDGE, *argv], "bridge")
     bridge.wait_for_output("output loop runs", WAIT_S)
-    dump = guest.Candump(channel, "-r", str(8 << 20), f"{channel},{CKESC_COMMAND}")
+    # The filter in the interface's argument: one socket (Candump adds its argument last, and
+    # a second argument would be a second socket, every frame counted twice).
+    dump = guest.Candump(f"{channel},{CKESC_COMMAND}", "-r", str(8 << 20))
     guest.wait_until(lambda: bool(guest.receivers(channel)), WAIT_S, "candump's socket")
     guest.wait_until(lambda: len(_command_payloads(dump)) > 10, WAIT_S, "safe values")
     safe = _command_payloads(dump)[-1][1]
