@@ -27,7 +27,6 @@ from bridge._compat import tomllib
 from bridge.can_io import open_bus
 from bridge.config import BridgeConfig, build_config, with_mixer_esc_count
 from bridge.escs import registry
-from bridge.escs.drivers import make_driver
 from bridge.telemetry.for_config import esc_table
 from bridge.telemetry.reader import CanReader
 
@@ -42,7 +41,7 @@ def _config(text: str, channel: str) -> BridgeConfig:
 
 def command_frames(config: BridgeConfig) -> list[tuple[int, bytes]]:
     """(ID, data) of one cycle of the bridge's commands (its safe values: same IDs and length)."""
-    driver = make_driver(config)
+    driver = config.family.driver(config.esc_setup)
     return [
         (msg.arbitration_id, bytes(msg.data))
         for tick in range(driver.ticks_per_cycle)
@@ -51,9 +50,17 @@ def command_frames(config: BridgeConfig) -> list[tuple[int, bytes]]:
 
 
 def filters(config: BridgeConfig, read_back: bool) -> list[CanFilter]:
-    """The family's filters: its telemetry, and with ``read_back`` its commands too."""
+    """The family's filters: its telemetry, and with ``read_back`` the bridge's command IDs too
+    (one exact filter each, as a reader that read them back would ask)."""
     family = registry.family(config.output.protocol)
-    return family.reader_filters(esc_table(config).node_ids, read_back)
+    telemetry = family.reader_filters(esc_table(config).node_ids)
+    if not read_back:
+        return telemetry
+    commands: list[CanFilter] = [
+        {"can_id": ident, "can_mask": 0x1FFFFFFF, "extended": True}
+        for ident in sorted({ident for ident, _ in command_frames(config)})
+    ]
+    return [*telemetry, *commands]
 
 
 def measure(config: str, seconds: float, order: list[bool]) -> list[dict[str, Any]]:
@@ -66,7 +73,9 @@ def measure(config: str, seconds: float, order: list[bool]) -> list[dict[str, An
     path.write_text(config)
     bridge_config = _config(config, channel)
     frames = command_frames(bridge_config)
-    gap_ms = 1000 / (bridge_config.rate_hz * make_driver(bridge_config).ticks_per_cycle)
+    gap_ms = 1000 / (
+        bridge_config.rate_hz * bridge_config.family.driver(bridge_config.esc_setup).ticks_per_cycle
+    )
     for ident, data in frames:
         guest.cangen(
             channel,

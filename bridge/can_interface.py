@@ -27,6 +27,7 @@ __all__ = ["Assessment", "LinkState", "assess", "bring_up_command", "parse_ip_li
 _IP_TIMEOUT_S: Final = 5.0
 _MISSING: Final = "does not exist"  # iproute2: 'Device "can7" does not exist.'
 _UNUSABLE_CAN_STATES: Final = frozenset({"BUS-OFF", "STOPPED"})
+_VIRTUAL_KINDS: Final = frozenset({"vcan", "vxcan"})
 
 
 @dataclass(frozen=True)
@@ -148,7 +149,7 @@ def assess(state: LinkState | None, channel: str, bitrate: int) -> Assessment:
         return Assessment(f"{where}: not found on this machine; run refuses to start", refusal)
     if state.kind != "can":
         what = state.kind or state.link_type or "unknown"
-        if state.kind in ("vcan", "vxcan"):  # virtual: no bit rate, nothing to compare
+        if state.kind in _VIRTUAL_KINDS:  # virtual: no bit rate, nothing to compare
             text = f"{where}: virtual ({what}), no bit rate to compare with {rate}"
         else:
             return Assessment(
@@ -176,6 +177,8 @@ def assess(state: LinkState | None, channel: str, bitrate: int) -> Assessment:
     else:
         text = f"{where}: configured for {rate}, as [can] bitrate"
     if not state.up:
+        if state.kind in _VIRTUAL_KINDS:  # no bit rate to give it
+            up = f"sudo ip link set {channel} up"
         return Assessment(
             f"{text}; down: run refuses to start",
             f"{where} is down; expected it up: `{up}`"

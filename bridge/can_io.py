@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import ipaddress
 import logging
 import os
 import socket
@@ -41,6 +42,21 @@ TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
 Receive = Literal["all", "telemetry", "none"]
 """What a bus handle receives: every frame, the frames its filters pass, or nothing."""
 
+
+class _QuietOpens(logging.Filter):
+    """Drops python-can's lines about each SocketCAN open: "Created a socket" (INFO) and "Could
+    not access SocketCAN device" (ERROR, a bind that failed). The output loop reopens a bus
+    that is gone, every few seconds for as long as it stays gone, and the bridge says itself,
+    once, what is wrong (:class:`~bridge.errors.LinkError`, the bus's state reports)."""
+
+    _TEMPLATES: Final = frozenset({"Created a socket", "Could not access SocketCAN device %s (%s)"})
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.msg not in self._TEMPLATES
+
+
+logging.getLogger("can.interfaces.socketcan.socketcan").addFilter(_QuietOpens())
+
 # -- the socket options python-can does not set for us (Linux) --------------------------------
 
 _SO_MEMINFO: Final = 55  # asm-generic/socket.h (x86, arm, arm64); Python has no constant
@@ -60,10 +76,19 @@ _UDP_DROPS_COLUMN = 12
 
 
 def check_interface(config: CanConfig, source: str) -> None:
-    """Refuse an interface name python-can does not know, before anything is opened.
+    """Refuse an interface name python-can does not know, and a channel the interface could
+    never open, before anything is opened.
+
+    The channels checked are those whose form is known without opening: a SocketCAN
+    interface's name (what the kernel takes: 1 to 15 characters, no ``/``, no white space;
+    python-can's empty name, every interface at once, cannot be sent on), and a udp_multicast
+    group (a multicast IP address, which python-can joins; a host name would be looked up, and
+    then refused). Whether the SocketCAN interface exists and is up is for
+    :mod:`bridge.can_interface`.
 
     Raises:
-        ConfigError: naming the interface and the ones python-can has.
+        ConfigError: naming the interface and the ones python-can has, or the channel and what
+            the interface expects.
     """
     if config.interface not in can.VALID_INTERFACES:
         known = ", ".join(sorted(can.VALID_INTERFACES))
@@ -71,6 +96,40 @@ def check_interface(config: CanConfig, source: str) -> None:
             f"{source}: [can] interface {config.interface!r} is not available; "
             f"expected one of {known}"
         )
+    expected = _channel_refusal(config.interface, config.channel)
+    if expected:
+        raise ConfigError(
+            f"{source}: [can] channel {config.channel!r} cannot be a {config.interface} "
+            f"channel; expected {expected}"
+        )
+
+
+_IFNAMSIZ: Final = 16  # linux/if.h: a name and its terminating zero
+
+
+def _channel_refusal(interface: str, channel: str) -> str:
+    """What ``interface`` expects of a channel that ``channel`` is not; '' when it may be."""
+    if interface == "socketcan":
+        if (
+            not 0 < len(channel) < _IFNAMSIZ
+            or channel in (".", "..")
+            or any(c == "/" or c.isspace() for c in channel)
+        ):
+            return (
+                "a network interface's name such as can0 (1 to 15 characters, no '/' or "
+                "white space): `ip link show` lists them"
+            )
+    elif interface == "udp_multicast":
+        try:
+            multicast = ipaddress.ip_address(channel).is_multicast
+        except ValueError:
+            multicast = False
+        if not multicast:
+            return (
+                "a multicast IP address: IPv4 in 224.0.0.0/4 such as 239.74.163.2, or IPv6 in "
+                "ff00::/8"
+            )
+    return ""
 
 
 def open_bus(

@@ -116,6 +116,40 @@ def test_what_is_missing_is_named_with_the_channel_and_rate() -> None:
     assert gone.text == "SocketCAN interface can7: not found on this machine; run refuses to start"
 
 
+# As `ip -details -json link show` printed them for Linux 6.1 (User-Mode Linux): a vxcan of a
+# pair, up, and a vcan down; tests/linux/test_interface.py reads them from the real `ip`.
+VXCAN_UP = (
+    '[{"ifindex":4,"link":"vx1","ifname":"vx0","flags":["NOARP","UP","LOWER_UP"],"mtu":72,'
+    '"qdisc":"noqueue","operstate":"UP","linkmode":"DEFAULT","group":"default","txqlen":10,'
+    '"link_type":"can","promiscuity":0,"allmulti":0,"min_mtu":0,"max_mtu":0,"linkinfo":'
+    '{"info_kind":"vxcan"},"num_tx_queues":1,"gso_max_size":65536,"gso_max_segs":65535,'
+    '"tso_max_size":65536,"tso_max_segs":65535,"gro_max_size":65536}]'
+)
+VCAN_DOWN = (
+    '[{"ifindex":5,"ifname":"can5","flags":["NOARP","ECHO"],"mtu":72,"qdisc":"noqueue",'
+    '"operstate":"DOWN","linkmode":"DEFAULT","group":"default","txqlen":1000,"link_type":"can",'
+    '"promiscuity":0,"allmulti":0,"min_mtu":0,"max_mtu":0,"linkinfo":{"info_kind":"vcan"},'
+    '"num_tx_queues":1,"gso_max_size":65536,"gso_max_segs":65535,"tso_max_size":65536,'
+    '"tso_max_segs":65535,"gro_max_size":65536}]'
+)
+
+
+def test_virtual_interfaces_up_and_down() -> None:
+    vxcan = assess(parse_ip_link(VXCAN_UP, "vx0"), "vx0", 500_000)
+    assert vxcan.refusal is None
+    assert vxcan.text == (
+        "SocketCAN interface vx0: virtual (vxcan), no bit rate to compare with 500000 "
+        "(500 kbit/s); up"
+    )
+    down = assess(parse_ip_link(VCAN_DOWN, "can5"), "can5", 500_000)
+    assert down.text.endswith("; down: run refuses to start")
+    # A virtual interface takes no bit rate: the command that brings it up has none.
+    assert down.refusal == (
+        "SocketCAN interface can5 is down; expected it up: `sudo ip link set can5 up` (or set "
+        "it up in the network configuration: docs/hardware.md)"
+    )
+
+
 def test_a_virtual_interface_has_no_rate_to_compare() -> None:
     found = assess(parse_ip_link(VCAN_UP, "vcan0"), "vcan0", 1_000_000)
     assert found.refusal is None

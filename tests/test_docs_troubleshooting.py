@@ -57,6 +57,12 @@ def test_the_new_warnings_are_explained() -> None:
         "nothing answered",
         "not a frame",
         "output loop runs WITHOUT real-time priority",
+        "CAN: FAULT bus stuck",
+        "CAN: FAULT interface down",
+        "CAN: FAULT interface gone",
+        "CAN: FAULT BUS-OFF",
+        "CAN: ERROR-PASSIVE",
+        "CAN: receive queue full",
         "frames claiming to be the autopilot",
         "now speaks from",
     ):

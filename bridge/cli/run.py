@@ -201,7 +201,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"  {checked.load_text}")
         for line in checked.passed:
             print(f"  {line}")
-        return EXIT_OK
+    # --check refuses what run refuses, in the same words and with the same exit status.
     if checked.interface_refusal is not None:
         raise LinkError(f"cannot start: {checked.interface_refusal}")
+    if args.check:
+        return EXIT_OK
     return supervisor.run(checked, record_dir=args.record, stop_signals=args.stop)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 
+from bridge.can_errors import ControllerState
 from bridge.config import BridgeConfig
 from bridge.daemon.motor_test_control import MotorTestControl
 from bridge.daemon.severity import (
@@ -21,10 +22,12 @@ from bridge.mavlink.link import MavlinkLink
 from bridge.mixing.definition import INPUT_NAMES
 from bridge.output.mailbox import InputSnapshot, LoopStats
 from bridge.output.safety import SENDING_COMMANDS, LoopState
+from bridge.output.transmit import TxState
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.payload import (
     ActuatorsInputPayload,
     ActuatorsOutputPayload,
+    CanBusHealth,
     CommandOut,
     HealthPayload,
     InputHealth,
@@ -126,7 +129,32 @@ class HealthReport:
             ),
             escs_online=sum(1 for esc in fanout.table.snapshot(time.monotonic_ns()) if esc.online),
             can_rx=fanout.can_rx(),
+            can_bus=self._can_bus(),
             zenoh=fanout.zenoh_health(),
+        )
+
+    def _can_bus(self) -> CanBusHealth:
+        stats, reader = self._stats, self.fanout.reader if self.fanout else None
+        tx_entered = stats.tx_state_entries()
+        controller = reader.stats.controller if reader is not None else None
+        entered = controller.entered if controller is not None else [0] * len(ControllerState)
+        return CanBusHealth(
+            tx_state=TxState(stats["tx_state"]).name.lower(),
+            ticks_held=stats["ticks_held"],
+            tx_probes=stats["tx_probes"],
+            stuck=tx_entered[TxState.STUCK],
+            down=tx_entered[TxState.DOWN],
+            gone=tx_entered[TxState.GONE],
+            controller_state=(
+                controller.state if controller is not None else ControllerState.ERROR_ACTIVE
+            ).name.lower(),
+            error_frames=controller.frames if controller is not None else 0,
+            error_warning=entered[ControllerState.ERROR_WARNING],
+            error_passive=entered[ControllerState.ERROR_PASSIVE],
+            bus_off=entered[ControllerState.BUS_OFF],
+            restarts=controller.restarts if controller is not None else 0,
+            receive_overflows=controller.receive_overflows if controller is not None else 0,
+            reader_reopens=reader.stats.reopens if reader is not None else 0,
         )
 
     def actuators_input(self) -> ActuatorsInputPayload | None:

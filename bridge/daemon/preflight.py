@@ -111,8 +111,8 @@ class Plan:
     """What each check beyond the mixer and the bus load found, one line each (for --check)."""
     interface_refusal: str | None = None
     """Why ``run`` must not start on the CAN interface as the system has it (missing, down,
-    bus-off), with what to do; None: it may. ``--check`` only reports it: it checks the
-    configuration, and may run on another machine than the vehicle."""
+    bus-off), with what to do; None: it may. ``run`` and ``--check`` both refuse with it (exit
+    1), ``--check`` after printing what every other check found."""
 
 
 def plan(config: BridgeConfig, record_dir: str | Path | None = None) -> Plan:

@@ -32,6 +32,7 @@ from pathlib import Path
 from bridge.can_io import SHAREABLE_INTERFACES
 from bridge.daemon.absence import AbsenceWatch, EscsHeard
 from bridge.daemon.address_reports import AddressReports
+from bridge.daemon.bus_reports import BusWatch
 from bridge.daemon.commands_sent import CommandsSent
 from bridge.daemon.health import STATE_REPORTS, HealthReport
 from bridge.daemon.loop_runner import LoopRunner, loop_mode, send_safe_values_after_death
@@ -48,6 +49,7 @@ from bridge.output.mailbox import InputSnapshot, LoopStats, MotorTestBlock, Sent
 from bridge.output.motor_test import limits_for
 from bridge.output.output_loop import LoopSetup
 from bridge.output.safety import SENDING_COMMANDS, LoopState
+from bridge.output.transmit import TxState
 from bridge.stopping import StopSignals
 from bridge.telemetry.fanout import Fanout
 from bridge.telemetry.for_config import esc_table
@@ -155,6 +157,7 @@ class Supervisor:
         )
         self._stop = threading.Event()
         self._absence: AbsenceWatch | None = None  # from when the loop and the reader run
+        self._bus_watch = BusWatch(self._report)
         self._reported_state = LoopState.STARTING
         self._stop_reason = ""
         self._entered = [0] * len(LoopState)
@@ -314,6 +317,7 @@ class Supervisor:
         if self.commands_sent is not None:
             self.commands_sent.update()
         self._report_states()
+        self._bus_watch.check(now_ns, stats, None if reader is None else reader.stats)
         self._addresses.check(stats)
         self.motor_test.watch()
         tick_errors = stats["tick_errors"]
@@ -323,7 +327,10 @@ class Supervisor:
             self._tick_errors = tick_errors
         errors = stats["send_errors"]
         now = time.monotonic()
-        if errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
+        if stats["tx_state"] != TxState.MOVING:
+            # Reported once as the bus's state (BusWatch): not every second as well.
+            self._last_errors = errors
+        elif errors != self._last_errors and now - self._errors_logged_at >= ERROR_LOG_INTERVAL_S:
             log.warning(
                 "CAN send failures: %d since the last report (%d in all; bus reopened %d times)",
                 errors - self._last_errors,
@@ -342,12 +349,12 @@ class Supervisor:
         entered = stats.state_entries()
         for passed, (severity, text) in STATE_REPORTS.items():
             if passed != state and entered[passed] != self._entered[passed]:
-                self._report(severity, text, passed)
+                self._report(severity, text, state=passed)
         if state in STATE_REPORTS and (
             state != self._reported_state or entered[state] != self._entered[state]
         ):
             severity, text = STATE_REPORTS[state]
-            self._report(severity, text, state)
+            self._report(severity, text, state=state)
         self._reported_state = state
         self._entered = entered
 
@@ -361,12 +368,13 @@ class Supervisor:
             return lateness[min(len(lateness) - 1, int(fraction * len(lateness)))]
 
         log.info(
-            "output loop: %d ticks, %d frames, %d send errors, %d overruns, %d immediate "
-            "sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, p99 %d µs, "
-            "max %d µs (last %d ticks)",
+            "output loop: %d ticks, %d frames, %d send errors, %d ticks held back, %d overruns, "
+            "%d immediate sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, "
+            "p99 %d µs, max %d µs (last %d ticks)",
             stats["ticks"],
             stats["frames_sent"],
             stats["send_errors"],
+            stats["ticks_held"],
             stats["overruns"],
             stats["immediate_sends"],
             stats["tick_errors"],
@@ -383,21 +391,25 @@ class Supervisor:
             return
         stats = reader.stats
         log.info(
-            "CAN in: %d frames read, %d telemetry, %d malformed, %d read errors; "
-            "%d of %d ESCs online; %s dropped by the kernel",
+            "CAN in: %d frames read, %d telemetry, %d malformed, %d error frames, %d read "
+            "errors; %d of %d ESCs online; %s dropped by the kernel",
             stats.frames,
             stats.telemetry,
             stats.malformed,
+            stats.controller.frames,
             stats.read_errors,
             sum(1 for esc in self.fanout.table.snapshot(time.monotonic_ns()) if esc.online),
             len(self.fanout.table),
             "?" if stats.kernel_drops is None else stats.kernel_drops,
         )
 
-    def _report(self, severity: int, text: str, state: LoopState | None = None) -> None:
-        """Log ``text`` and send it as STATUSTEXT; a ``state`` the loop entered is recorded."""
+    def _report(
+        self, severity: int, text: str, detail: str = "", state: LoopState | None = None
+    ) -> None:
+        """``text`` in the log (with ``detail`` after it) and as a STATUSTEXT; a ``state`` the
+        loop entered is recorded."""
         level = logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO
-        log.log(level, "%s", text)
+        log.log(level, "%s%s", text, f": {detail}" if detail else "")
         self.link.statustext(severity, text)
         if state is not None and self.recording is not None:
             self.recording.mcap.state(

@@ -36,6 +36,7 @@ from typing import Any
 
 from bridge.mixing.definition import INPUT_NAMES
 from bridge.output.safety import LoopState
+from bridge.output.transmit import TxState
 
 INPUT_VECTOR_LEN = len(INPUT_NAMES)
 
@@ -336,6 +337,11 @@ STAT_FIELDS = (
     # How many times the loop entered each state, in LoopState's order: the supervisor reports
     # every state entered since it last looked, even one left again before it looked.
     *(f"entered_{state.name.lower()}" for state in LoopState),
+    "tx_state",  # TxState: how the loop's frames are leaving (bridge.output.transmit)
+    "ticks_held",  # ticks not sent: frames of an earlier tick were still in the kernel
+    "tx_probes",  # ticks sent after the frames in flight were taken for lost (no echo)
+    # How many times the transmit side entered each TxState, as for the loop's states.
+    *(f"entered_tx_{state.name.lower()}" for state in TxState),
 )
 LATENESS_RING = 1 << 16  # wake-up lateness samples kept, µs; enough for 160 s at 400 Hz
 
@@ -363,6 +369,11 @@ class LoopStats:
         """How many times the loop entered each state, indexed by :class:`LoopState`."""
         first = self._index["entered_starting"]
         return list(self._counters[first : first + len(LoopState)])
+
+    def tx_state_entries(self) -> list[int]:
+        """How many times the transmit side entered each state, indexed by :class:`TxState`."""
+        first = self._index["entered_tx_moving"]
+        return list(self._counters[first : first + len(TxState)])
 
     def slot(self, name: str) -> int:
         """The index of a counter, for the loop's hot path (no dict lookup per tick)."""

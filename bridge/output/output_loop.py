@@ -20,8 +20,10 @@ What one tick does is :meth:`OutputLoop.tick` (a test drives it on its own, afte
 It stops with a flush of safe values for ``shutdown_flush_ms`` when asked (the supervisor's
 ``stop_requested``), on SIGTERM, SIGHUP, SIGQUIT or SIGINT, and when the main process dies (its
 end of the relay reads as end of file; its parent id changes). Sends are non-blocking and a
-failed one is counted (the bus is reopened with backoff when it is gone); counters are
-lock-free shared memory that the supervisor samples to log and report.
+failed one is counted; on SocketCAN a tick is never written behind frames the kernel still
+holds (:mod:`bridge.output.transmit`), and a bus that is gone is reopened with a backoff that
+grows while it stays gone. Counters are lock-free shared memory that the supervisor samples to
+log and report.
 """
 
 from __future__ import annotations
@@ -38,7 +40,8 @@ from dataclasses import dataclass
 
 import can
 
-from bridge.can_io import Receive, is_transient, open_bus
+from bridge.backoff import Backoff
+from bridge.can_io import Receive, open_bus
 from bridge.config import BridgeConfig
 from bridge.errors import BridgeError
 from bridge.escs.family import EscDriver
@@ -59,10 +62,14 @@ from bridge.output.mailbox import (
 from bridge.output.motor_test import test_frames
 from bridge.output.safety import ControlInputs, LoopState, SafetyLimits, decide, motor_test_ended
 from bridge.output.slew import SlewLimiter
+from bridge.output.transmit import BusGone, Transmitter, TxState, transmitter_for
 
 log = logging.getLogger(__name__)
 
-REOPEN_BACKOFF_S = (0.1, 2.0)  # first and longest wait before reopening a bus that is gone
+# First and longest wait before reopening a bus that is gone; the wait doubles while the
+# interface stays unusable (each attempt fails, or the bus opens but no tick goes out) and is
+# back to the first once a whole tick went out.
+REOPEN_BACKOFF_S = (0.1, 2.0)
 PARENT_CHECK_TICKS = 64  # how often the loop checks that its supervisor still lives
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGINT)
 
@@ -227,8 +234,14 @@ class OutputLoop:
             config, setup.input, self._inputs, stats, snapshot, self._relay
         )
         self._bus: can.BusABC | None = None
+        self._tx: Transmitter | None = None
+        # Ticks may be held back (frames of an earlier one still in the kernel) this long before
+        # the bus is reported stuck: as long as the bridge would call its own input stale.
+        self._stuck_after_ns = config.output.input_timeout_ms * 1_000_000
         self._reopen_at_ns = 0
-        self._backoff_s = REOPEN_BACKOFF_S[0]
+        self._backoff = Backoff(*REOPEN_BACKOFF_S)
+        # The counts of the transmitters before the current one (a reopen starts a new one).
+        self._tx_before = self._held_before = self._probes_before = 0
         # The tick's state: its number, the last one's time, the newest motor test read, when
         # the shutdown flush ends (0: not stopping), the parent to watch (0: none).
         self._tick = 0
@@ -247,6 +260,9 @@ class OutputLoop:
         self._i_lateness_count, self._i_stop = slot("lateness_count"), slot("stop_requested")
         self._i_test_motor, self._i_redecided = slot("motor_test_motor"), slot("redecided")
         self._i_entered = slot("entered_starting")  # + a LoopState: its entry count
+        self._i_tx_state, self._i_held = slot("tx_state"), slot("ticks_held")
+        self._i_send_errors, self._i_probes = slot("send_errors"), slot("tx_probes")
+        self._i_tx_entered = slot("entered_tx_moving")  # + a TxState: its entry count
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -286,6 +302,7 @@ class OutputLoop:
         """
         try:
             self._bus = self._open_bus()
+            self._tx = transmitter_for(self._bus, self._stuck_after_ns)
             self._input.open()
         except BridgeError:
             self._stats["state"] = LoopState.FAILED
@@ -359,6 +376,7 @@ class OutputLoop:
         counters[self._i_test_motor] = selector.test_index + 1
         counters[self._i_tick_errors] = selector.faults
         counters[self._i_sent] += self._send(frames, now_ns)
+        self._count_tx()
         counters[self._i_ticks] += 1
         self._last_ns = now_ns
         self._tick = tick + 1
@@ -446,27 +464,53 @@ class OutputLoop:
         return True
 
     def _send(self, frames: list[can.Message], now_ns: int) -> int:
-        """Send without blocking; count failures; reopen a bus that is gone, with backoff."""
-        bus = self._bus
-        if bus is None:
+        """Send without blocking (:mod:`bridge.output.transmit`); reopen a bus that is gone,
+        with backoff."""
+        tx = self._tx
+        if tx is None:
             if now_ns < self._reopen_at_ns:
                 return 0
-            bus = self._reopen()
-            if bus is None:
+            tx = self._reopen(now_ns)
+            if tx is None:
                 return 0
-        sent = 0
-        for frame in frames:
-            try:
-                bus.send(frame, timeout=0)
-            except (can.CanError, OSError) as exc:
-                self._stats["send_errors"] += 1
-                if not is_transient(exc):
-                    bus.shutdown()
-                    self._bus = None
-                    self._reopen_at_ns = now_ns + int(self._backoff_s * 1e9)
-                break  # the rest of this tick would fail the same way
-            sent += 1
+        try:
+            sent = tx.send_tick(frames, now_ns)
+        except BusGone:
+            self._close_bus(now_ns)
+            return 0
+        if sent and sent == len(frames) and self._backoff.grown:
+            self._backoff.reset()  # usable: a whole tick went out
         return sent
+
+    def _count_tx(self) -> None:
+        """The transmit side's state and counters into the shared statistics."""
+        counters, tx = self._counters, self._tx
+        state = TxState.GONE if tx is None else tx.state
+        if state != counters[self._i_tx_state]:
+            counters[self._i_tx_entered + state] += 1
+            counters[self._i_tx_state] = state
+        if tx is not None:
+            counters[self._i_send_errors] = self._tx_before + tx.send_errors
+            counters[self._i_held] = self._held_before + tx.ticks_held
+            counters[self._i_probes] = self._probes_before + tx.probes
+
+    def _close_bus(self, now_ns: int) -> None:
+        """The bus is gone: close it, and try again after the backoff (growing while the
+        interface stays unusable)."""
+        tx = self._tx
+        if tx is not None:
+            self._tx_before += tx.send_errors
+            self._held_before += tx.ticks_held
+            self._probes_before += tx.probes
+            self._counters[self._i_send_errors] = self._tx_before
+        self._tx = None
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+        self._schedule_reopen(now_ns)
+
+    def _schedule_reopen(self, now_ns: int) -> None:
+        self._reopen_at_ns = now_ns + int(self._backoff.wait_s(random.random()) * 1e9)
 
     def _open_bus(self) -> can.BusABC:
         # explain=False: no `ip` process from the loop; preflight read the interface.
@@ -474,17 +518,16 @@ class OutputLoop:
             self._config.can, self._config.bitrate, receive=self._bus_receive, explain=False
         )
 
-    def _reopen(self) -> can.BusABC | None:
+    def _reopen(self, now_ns: int) -> Transmitter | None:
         try:
-            self._bus = self._open_bus()
+            bus = self._open_bus()
         except BridgeError:
-            wait_s = self._backoff_s * (0.5 + random.random())  # jitter: no lock-step retries
-            self._backoff_s = min(self._backoff_s * 2, REOPEN_BACKOFF_S[1])
-            self._reopen_at_ns = time.monotonic_ns() + int(wait_s * 1e9)
+            self._schedule_reopen(now_ns)
             return None
-        self._backoff_s = REOPEN_BACKOFF_S[0]
+        self._tx = transmitter_for(bus, self._stuck_after_ns)
+        self._bus = bus
         self._stats["bus_reopens"] += 1
-        return self._bus
+        return self._tx
 
 
 def run_in_process(

@@ -95,19 +95,13 @@ class Fanout:
         learn_node_ids: LearnNodeIds | None = getattr(learning, "learn_node_ids", None)
         learn = learn_node_ids is not None
         filters = self._filters()
+        reopen = None
         if self._shared_bus is None:
-            if filters is None or learn:
-                # The ESCs' answers are not telemetry: learn on an unfiltered handle, then
-                # filter by the node IDs learnt.
-                self._own_bus = open_bus(config.can, config.bitrate)
-            else:
-                self._own_bus = open_bus(
-                    config.can, config.bitrate, receive="telemetry", filters=filters
-                )
-            granted = enlarge_receive_buffer(self._own_bus, RECEIVE_BUFFER_BYTES)
-            if granted is not None:
-                log.debug("CAN reader receive buffer: %d bytes", granted)
-            bus: Any = self._own_bus
+            # The ESCs' answers are not telemetry: learn on an unfiltered handle, then filter by
+            # the node IDs learnt.
+            self._open_own_bus(None if learn else filters)
+            bus: Any = self._current_own_bus  # the current handle, after a reopen too
+            reopen = self._reopen_own_bus
         else:
             bus = self._shared_bus
         if learn_node_ids is not None:
@@ -122,11 +116,45 @@ class Fanout:
                 "CAN reader receives %s",
                 "every frame" if filters is None else f"what {len(filters)} filters pass",
             )
-        self.reader = CanReader(bus, self.table, self._family, self._recorder, self._states)
+        self.reader = CanReader(
+            bus, self.table, self._family, self._recorder, self._states, reopen=reopen
+        )
         self.reader.start()
         self.mavlink.start()
         if self.zenoh is not None:
             self.zenoh.start()
+
+    def _open_own_bus(self, filters: list[CanFilter] | None, explain: bool = True) -> None:
+        """Open the reader's own handle: every frame, or what ``filters`` pass.
+
+        Raises:
+            LinkError: the bus cannot be opened.
+        """
+        config = self._config
+        if filters is None:
+            self._own_bus = open_bus(config.can, config.bitrate, explain=explain)
+        else:
+            self._own_bus = open_bus(
+                config.can, config.bitrate, receive="telemetry", filters=filters, explain=explain
+            )
+        granted = enlarge_receive_buffer(self._own_bus, RECEIVE_BUFFER_BYTES)
+        if granted is not None:
+            log.debug("CAN reader receive buffer: %d bytes", granted)
+
+    def _current_own_bus(self) -> can.BusABC | None:
+        return self._own_bus
+
+    def _reopen_own_bus(self) -> None:
+        """The reader's handle again, after its interface was gone (from the reader's thread).
+
+        Raises:
+            LinkError: the bus cannot be opened (yet).
+        """
+        old, self._own_bus = self._own_bus, None
+        if old is not None:
+            old.shutdown()
+        # No `ip` run per attempt: the interface is known to be missing.
+        self._open_own_bus(self._filters(), explain=False)
 
     def _filters(self) -> list[CanFilter] | None:
         try:

@@ -252,6 +252,32 @@ class CanRxHealth:
 
 
 @dataclass(frozen=True, kw_only=True)
+class CanBusHealth:
+    """``can_bus`` of the health: the bus as the loop's frames and the controller find it."""
+
+    tx_state: str
+    """How the loop's frames leave: ``moving``, ``stuck``, ``down``, ``gone``."""
+    ticks_held: int
+    """Ticks not sent: frames of an earlier tick were still in the kernel."""
+    tx_probes: int
+    stuck: int
+    """Times the loop's frames stopped leaving for longer than the input timeout."""
+    down: int
+    gone: int
+    controller_state: str
+    """As the controller's error frames last said: ``error_active``, ``error_warning``,
+    ``error_passive``, ``bus_off``."""
+    error_frames: int
+    error_warning: int
+    error_passive: int
+    bus_off: int
+    restarts: int
+    receive_overflows: int
+    """Times the controller's own receive buffer overflowed."""
+    reader_reopens: int
+
+
+@dataclass(frozen=True, kw_only=True)
 class ZenohHealth:
     """``zenoh`` of the health: the publisher's counters."""
 
@@ -276,6 +302,8 @@ class HealthPayload(Payload):
     link: LinkHealth
     escs_online: int
     can_rx: CanRxHealth
+    can_bus: CanBusHealth | None = field(default=None, metadata=_OMIT_NONE)
+    """None (left out) from a bridge older than the record."""
     zenoh: ZenohHealth | None = field(default=None, metadata=_OMIT_NONE)
     """None (left out) when Zenoh is off."""
 

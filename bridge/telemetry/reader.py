@@ -11,7 +11,12 @@ udp_multicast another handle of the same bus sees them), since the recording wan
 frame; otherwise only our ESCs' telemetry. :class:`~bridge.telemetry.state.EscTable` keeps only
 telemetry from our ESCs either way. A malformed frame is counted against the ESC its ID names
 and dropped; nothing that arrives stops the reader. Frames the kernel dropped because the reader
-fell behind are counted too (:attr:`ReaderStats.kernel_drops`).
+fell behind are counted too (:attr:`ReaderStats.kernel_drops`). An error frame (SocketCAN: what
+the controller says about the bus) is read by :mod:`bridge.can_errors` into
+:attr:`ReaderStats.controller`, the controller's state and fault counts. When its interface is
+deleted (a USB adapter unplugged) the reader's socket can never receive again: given
+``reopen``, the reader opens the bus again, with a backoff that grows while the interface stays
+missing.
 
 With a :class:`StateRecorder` (the MCAP recording), the reader also hands it, for each telemetry
 frame, the ESC's state after it, and for each command frame every ESC's last command
@@ -21,18 +26,22 @@ it was on the bus, not the loop's newest ten times a second.
 
 from __future__ import annotations
 
+import errno
 import logging
+import random
 import threading
 import time
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import can
 from can.typechecking import CanFilter
 
+from bridge.backoff import Backoff
+from bridge.can_errors import ControllerErrors, ControllerState, decode_error_frame
 from bridge.can_io import receive_drops
-from bridge.errors import CodecError
+from bridge.errors import BridgeError, CodecError
 from bridge.escs.family import CommandSeen, EscFamily
 from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
@@ -42,6 +51,11 @@ RECV_TIMEOUT_S = 0.1  # how often the reader notices close()
 JOIN_TIMEOUT_S = 2.0
 # The drop count costs a system call (and a /proc read on udp_multicast): at most this often.
 DROPS_SAMPLE_PERIOD_NS = 1_000_000_000
+# First and longest wait between attempts to reopen a bus whose interface is gone.
+REOPEN_BACKOFF_S = (0.1, 2.0)
+# Read errors that mean the handle's interface is gone: its socket is unbound for good.
+GONE_ERRNOS = frozenset({errno.ENODEV, errno.ENXIO})
+_BUS_OFF = ControllerState.BUS_OFF
 
 Recorder = Callable[[can.Message], None]
 """Takes every frame read (the candump log)."""
@@ -82,6 +96,10 @@ class ReaderStats:
     """Frames in our family's space that failed to decode (CRC, DLC, tail byte, ...)."""
     read_errors: int = 0
     """Failures of the bus itself while reading."""
+    reopens: int = 0
+    """Times the reader's own bus was opened again after its interface was gone."""
+    controller: ControllerErrors = field(default_factory=ControllerErrors)
+    """The controller's state and faults, from its error frames (SocketCAN)."""
     kernel_drops: int | None = None
     """Frames the kernel dropped because the reader's receive queue was full, since its handle
     was opened (the sum over handles, if a shared one was reopened). Sampled once a second,
@@ -129,9 +147,13 @@ class CanReader:
         family: EscFamily,
         recorder: Recorder | None = None,
         states: StateRecorder | None = None,
+        reopen: Callable[[], object] | None = None,
     ) -> None:
-        """``recorder`` takes every frame read, ``states`` the ESC state's changes."""
+        """``recorder`` takes every frame read, ``states`` the ESC state's changes;
+        ``reopen`` opens the bus again (``bus`` then gives the new handle) after its interface
+        was gone, and raises :class:`~bridge.errors.BridgeError` while it cannot."""
         self._bus_source = bus if callable(bus) else lambda: bus
+        self._reopen = reopen
         self._table = table
         self._decoder = family.decoder()
         self._recorder = recorder
@@ -169,7 +191,11 @@ class CanReader:
                 failures += 1
                 if failures == 1 or failures % 100 == 0:
                     log.warning("CAN read failed (%d in all): %s", self.stats.read_errors, exc)
-                self._stop.wait(RECV_TIMEOUT_S)  # a bus that is gone must not spin the CPU
+                code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+                if code in GONE_ERRNOS and self._reopen is not None:
+                    self._reopen_until_open()
+                else:
+                    self._stop.wait(RECV_TIMEOUT_S)  # a bus that is gone must not spin the CPU
                 continue
             failures = 0
             now_ns = time.monotonic_ns()
@@ -178,6 +204,20 @@ class CanReader:
             if now_ns >= next_sample_ns:
                 next_sample_ns = now_ns + DROPS_SAMPLE_PERIOD_NS
                 self._sample_drops(bus)
+
+    def _reopen_until_open(self) -> None:
+        """Open the bus again, waiting longer between attempts while it cannot be (the
+        interface is still missing), until it opens or the reader is closed."""
+        assert self._reopen is not None
+        backoff = Backoff(*REOPEN_BACKOFF_S)
+        while not self._stop.wait(backoff.wait_s(random.random())):
+            try:
+                self._reopen()
+            except BridgeError:
+                continue
+            self.stats.reopens += 1
+            log.info("CAN reader: bus open again (%d reopens)", self.stats.reopens)
+            return
 
     def _sample_drops(self, bus: can.BusABC) -> None:
         if bus is not self._drops_bus:
@@ -195,6 +235,11 @@ class CanReader:
         stats.frames += 1
         if self._recorder is not None:
             self._recorder(msg)
+        if msg.is_error_frame:
+            stats.controller.note(decode_error_frame(msg.arbitration_id, msg.data))
+            return
+        if stats.controller.state == _BUS_OFF:
+            stats.controller.note_frame_received()
         decoder = self._decoder
         try:
             frame = decoder.decode(msg, self._table.node_set)

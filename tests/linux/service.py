@@ -18,7 +18,8 @@ from pymavlink import mavutil
 from bridge._compat import tomllib
 from bridge.config import build_config
 from bridge.errors import CodecError
-from bridge.escs import ckesc
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from linux import guest
 
 ROOT = Path(__file__).resolve().parent.parent.parent
@@ -43,7 +44,7 @@ def vehicle_config() -> str:
 
 
 RATE_HZ = build_config(tomllib.loads(vehicle_config()), "guest").rate_hz
-FULL_SCALE = ckesc.THROTTLE_MAX  # quad-ckesc.toml: RawCommand_12b
+FULL_SCALE = ckesc_records.THROTTLE_MAX  # quad-ckesc.toml: RawCommand_12b
 
 
 def unit_seconds(key: str) -> float:
@@ -56,10 +57,10 @@ def unit_seconds(key: str) -> float:
 def throttles(line: str) -> tuple[int, ...] | None:
     """The first four throttles of a ``candump -L`` line's RawCommand_12b, or None."""
     try:
-        frame = ckesc.decode(guest.candump_message(line)[1])
+        frame = ckesc_codec.decode(guest.candump_message(line)[1])
     except (ValueError, CodecError):
         return None
-    if frame is None or not isinstance(frame.message, ckesc.RawCommand12b):
+    if frame is None or not isinstance(frame.message, ckesc_records.RawCommand12b):
         return None
     return frame.message.throttles[:4]
 

@@ -39,10 +39,14 @@ from pymavlink import mavutil
 from bridge._compat import tomllib
 from bridge.config import BridgeConfig, build_config, with_mixer_esc_count
 from bridge.errors import CodecError
-from bridge.escs import ckesc, ft, registry
+from bridge.escs import registry
+from bridge.escs.ckesc import codec as ckesc_codec
+from bridge.escs.ckesc import records as ckesc_records
 from bridge.escs.dronecan.codec import Decoder as DronecanDecoder
 from bridge.escs.dronecan.codec import RawCommand as DronecanRawCommand
 from bridge.escs.dronecan.wire import COMMAND_MAX
+from bridge.escs.ft import codec as ft_codec
+from bridge.escs.ft import records as ft_records
 from bridge.escs.ft.keys import FtKeys
 from bridge.telemetry.for_config import esc_table
 from bridge.telemetry.reader import reader_filters
@@ -203,11 +207,12 @@ class Family:
 def ckesc_reader(full_scale: int) -> Callable[[], Reader]:
     def read(msg: can.Message) -> Commands | None:
         try:
-            frame = ckesc.decode(msg)
+            frame = ckesc_codec.decode(msg)
         except CodecError:
             return None
         if frame is None or not isinstance(
-            frame.message, ckesc.RawCommand12b | ckesc.RawCommand14b | ckesc.RawCommand10b
+            frame.message,
+            ckesc_records.RawCommand12b | ckesc_records.RawCommand14b | ckesc_records.RawCommand10b,
         ):
             return None
         return {i: t / full_scale for i, t in enumerate(frame.message.throttles[:4])}
@@ -220,12 +225,12 @@ def ft_reader(record: type, value: Callable[[Any], float]) -> Callable[[], Reade
     the safe value, whatever the mode: zero current (SetCurrent 0 A, which the driver sends)."""
 
     def read(msg: can.Message) -> Commands | None:
-        frame = ft.decode(msg)
+        frame = ft_codec.decode(msg)
         if frame is None:
             return None
         if isinstance(frame.message, record):
             return {frame.esc_id - 11: value(frame.message)}
-        if isinstance(frame.message, ft.SetCurrent) and frame.message.current_a == 0:
+        if isinstance(frame.message, ft_records.SetCurrent) and frame.message.current_a == 0:
             return {frame.esc_id - 11: 0.0}
         return None
 
@@ -257,15 +262,22 @@ OUTPUT = "input_timeout_ms = 1000\n"
 FT = f'[output]\nprotocol = "ft"\nrate_hz = 12\n{OUTPUT}[escs]\nids = [11, 12, 13, 14]\n'
 CKESC = f"[output]\nrate_hz = 50\n{OUTPUT}[escs]\n"
 FAMILIES = {
-    "ckesc-12b": Family(f'{CKESC}ckesc_command = "12b"\n', ckesc_reader(ckesc.THROTTLE_MAX)),
-    "ckesc-14b": Family(f'{CKESC}ckesc_command = "14b"\n', ckesc_reader(ckesc.THROTTLE_MAX)),
-    "ckesc-10b": Family(f'{CKESC}ckesc_command = "10b"\n', ckesc_reader(ckesc.THROTTLE_10B_MAX)),
+    "ckesc-12b": Family(
+        f'{CKESC}ckesc_command = "12b"\n', ckesc_reader(ckesc_records.THROTTLE_MAX)
+    ),
+    "ckesc-14b": Family(
+        f'{CKESC}ckesc_command = "14b"\n', ckesc_reader(ckesc_records.THROTTLE_MAX)
+    ),
+    "ckesc-10b": Family(
+        f'{CKESC}ckesc_command = "10b"\n', ckesc_reader(ckesc_records.THROTTLE_10B_MAX)
+    ),
     "ft-current": Family(
         f'{FT}ft_mode = "current"\n',
-        ft_reader(ft.SetCurrent, lambda m: m.current_a / FtKeys().ft_max_current_a),
+        ft_reader(ft_records.SetCurrent, lambda m: m.current_a / FtKeys().ft_max_current_a),
     ),
     "ft-duty": Family(
-        f'{FT}ft_mode = "duty"\n', ft_reader(ft.SetDuty, lambda m: m.duty / FtKeys().ft_max_duty)
+        f'{FT}ft_mode = "duty"\n',
+        ft_reader(ft_records.SetDuty, lambda m: m.duty / FtKeys().ft_max_duty),
     ),
     "dronecan": Family(f'[output]\nprotocol = "dronecan"\nrate_hz = 50\n{OUTPUT}', dronecan_reader),
 }

@@ -200,6 +200,24 @@ def test_health_nested_fields() -> None:
             ]
         ),
     }
+    assert sorted(value["can_bus"]) == sorted(
+        [
+            "tx_state",
+            "ticks_held",
+            "tx_probes",
+            "stuck",
+            "down",
+            "gone",
+            "controller_state",
+            "error_frames",
+            "error_warning",
+            "error_passive",
+            "bus_off",
+            "restarts",
+            "receive_overflows",
+            "reader_reopens",
+        ]
+    )
     assert sorted(value["zenoh"]) == ["dropped", "published", "session_up"]
     assert sorted(value["motor_test"]) == ["motor", "motors", "remaining_s", "throttle"]
 
