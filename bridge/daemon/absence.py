@@ -56,14 +56,6 @@ def _list(values: Sequence[int]) -> str:
     return ", ".join(str(v) for v in values)
 
 
-def _reports_on(family: str) -> str:
-    """How the family's ESCs are made to report, where its set-up tool says (``REPORTS_ON`` in
-    its ``setup.py``: ESCs whose reports are off from the factory), for the never-heard hint."""
-    setup = registry.tool(family, "setup")
-    advice = getattr(setup, "REPORTS_ON", None) if setup is not None else None
-    return f" {advice}" if isinstance(advice, str) else ""
-
-
 class AbsenceWatch:
     """Warns about a missing autopilot HEARTBEAT and silent ESCs; :meth:`check` is called a few
     times a second with the monotonic time and what the link and the ESC state hold."""
@@ -158,12 +150,12 @@ class AbsenceWatch:
             hint = (
                 f"no ESC telemetry on the bus at all ({heard.frames} frames read): are the ESCs "
                 "powered, the bus wired (CAN H to H, L to L, 120 ohm at both ends), the ESCs at "
-                f"that bit rate and their reports on?{_reports_on(family.name)}"
+                "that bit rate and their reports on?"
             )
         elif never:
             hint = (
                 f"{_list(never)} never heard: is each such ESC powered and wired, its ID the "
-                f"one in [escs] ids, its reports on?{_reports_on(family.name)}"
+                "one in [escs] ids, its reports on?"
             )
         else:
             hint = "heard before, silent now: power, wiring, or an ESC that reset"

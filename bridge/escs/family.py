@@ -39,9 +39,7 @@ no stub:
   needs other settings than the defaults for this family, ``DEMO_SETTINGS``: configuration
   tables merged over the demo's own.
 - ``setup.py``: ``learn_node_ids(bus: can.BusABC, setup: EscSetup) -> dict[int, int]``, for
-  ``[telemetry] learn_ids``: the node ID of each mixer output (0-based) whose ESC answered;
-  and, for ESCs whose reports are off until set up, ``REPORTS_ON``: how to turn them on, which
-  the running bridge's warning about ESCs it never heard adds (:mod:`bridge.daemon.absence`).
+  ``[telemetry] learn_ids``: the node ID of each mixer output (0-based) whose ESC answered.
 - ``cli.py``: ``add_commands(esc_commands, bus_flags: BusFlags)``, the family's set-up commands
   under ``esc-bridge esc`` (:class:`bridge.escs.tools.BusFlags` is what the CLI hands them).
 

@@ -113,25 +113,6 @@ def test_telemetry_from_other_ids_is_pointed_at() -> None:
     assert ": 1 telemetry frames came from IDs not in [escs] ids: are those the ESCs' IDs?" in said
 
 
-def test_a_family_whose_reports_are_off_from_the_factory_says_how_to_turn_them_on() -> None:
-    # A VESC sends no status frames until VESC Tool turns them on: its set-up tool says how.
-    w = Watched({"output": {"protocol": "vesc"}})
-    w.esc(2, GRACE_S - 0.1)
-    w.frames = 40
-    (said,) = [text for _, text in w.at(GRACE_S) if "telemetry" in text]
-    assert said.startswith("no telemetry from VESC ESC IDs 1, 3, 4 (motors 1, 3, 4) of 4 on ")
-    assert said.endswith(
-        "1, 3, 4 never heard: is each such ESC powered and wired, its ID the one in [escs] ids, "
-        "its reports on? A VESC sends no status frames until told to: turn them on in VESC "
-        "Tool: App Settings > General > Can Messages Rate 1: Status 1 to 5, Can Status Rate 1: "
-        "50 Hz (firmware 5.x: Can Status Message Mode CAN_STATUS_1_2_3_4_5). "
-        "(docs/troubleshooting.md)"
-    )
-    # Families without such a tool say nothing more (CKESC above, FT here).
-    ft = Watched({"output": {"protocol": "ft"}})
-    assert ft.at(GRACE_S)[1][1].endswith("and their reports on? (docs/troubleshooting.md)")
-
-
 # -- the daemon, nothing on either side --------------------------------------------------------
 
 _STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) \w+ esc-bridge ")

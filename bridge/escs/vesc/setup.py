@@ -39,8 +39,6 @@ STATUS_ON_HINT: Final = (
     "Can Status Rate 1: 50 Hz (firmware 5.x: Can Status Message Mode CAN_STATUS_1_2_3_4_5)"
 )
 """What docs/escs.md asks of every VESC the bridge drives."""
-REPORTS_ON: Final = f"A VESC sends no status frames until told to: {STATUS_ON_HINT}."
-"""For the running bridge's warning about VESCs it never heard (bridge/daemon/absence.py)."""
 
 
 @dataclass(frozen=True)
