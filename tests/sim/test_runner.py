@@ -374,7 +374,7 @@ def test_cli_sim_bad_fault_is_a_usage_error() -> None:
         (["--ids", "1,x"], "argument --ids: expected a comma-separated list of ESC IDs"),
         (["--ids", "1,1"], "--ids: expected a list of distinct integers 1..125"),
         (["--ids", "1,2", "--escs", "3"], "--ids: 2 IDs, but --escs 3"),
-        (["--protocol", "vesc", "--escs", "1"], "argument --protocol: invalid choice: 'vesc'"),
+        (["--protocol", "kdecan", "--escs", "1"], "argument --protocol: invalid choice: 'kdecan'"),
         (["--escs", "1", "--bitrate", "3"], "--bitrate: expected a bit rate such as 500000, 500k"),
         (["--escs", "1", "--battery-cells", "15"], "expected a number of cells 1..14"),
         (["--escs", "1", "--duration", "0"], "expected a number of seconds > 0"),
