@@ -112,9 +112,16 @@ def fly(config: str, pwm: list[int]) -> dict[str, Any]:
     bridge = guest.bridge(channel, port, "--config", str(path), "--no-zenoh")
     # One at a time: the guest's one CPU starts an interpreter faster without a second one.
     bridge.wait_for_output("output loop runs", START_TIMEOUT_S)
-    # The reader opens its handle just after the loop reports.
+    # The reader opens its handle just after the loop reports; the loop's own socket holds
+    # exact-ID receivers only (the echo of its frames), the reader's masked ones ("fil").
+    old_owners = {row["owner"] for row in before_bridge}
     guest.wait_until(
-        lambda: len(guest.receivers(channel)) > len(before_bridge), 30, "the reader's receivers"
+        lambda: any(
+            row["list"] == "fil" and row["owner"] not in old_owners
+            for row in guest.receivers(channel)
+        ),
+        30,
+        "the reader's receivers",
     )
     with_bridge = guest.receivers(channel)
     sim = guest.sim(channel, "--config", str(path))
@@ -369,11 +376,17 @@ class Flight:
         before = {row["owner"] for row in self.receivers("before_bridge")}
         return [row for row in self.receivers("with_bridge") if row["owner"] not in before]
 
-    def readers_filters(self, when: str) -> list[dict[str, Any]]:
-        """The filters of the bridge's socket that has any (the reader's), at ``when``."""
-        owners = {row["owner"] for row in self.bridges_receivers() if row["list"] != "err"}
+    def reader_owner(self) -> str:
+        """The bridge's socket holding masked filters (the reader's): the output loop's holds
+        exact IDs only, the echo of its own frames."""
+        owners = {row["owner"] for row in self.bridges_receivers() if row["list"] == "fil"}
         assert len(owners) == 1, self.bridges_receivers()
-        return [r for r in self.receivers(when) if r["owner"] in owners and r["list"] != "err"]
+        return owners.pop()
+
+    def readers_filters(self, when: str) -> list[dict[str, Any]]:
+        """The filters of the reader's socket, at ``when``."""
+        owner = self.reader_owner()
+        return [r for r in self.receivers(when) if r["owner"] == owner and r["list"] != "err"]
 
 
 def log_lines(output: str) -> list[tuple[float, str]]:
@@ -457,21 +470,27 @@ def test_sigterm_flushes_safe_values_last_and_exits_zero(flight: Flight) -> None
 
 
 def test_the_kernel_holds_exactly_the_readers_filters(flight: Flight) -> None:
-    """/proc/net/can: the bridge's sockets hold the filters the production code derives for
-    this configuration (the reader's: its ESCs' telemetry), all on one socket (the reader's),
-    plus the error-frame receiver python-can gives every handle it opens: the output loop's
-    transmit-only handle registers nothing. And none of them passes a frame the bridge sent: its
-    own commands are never read back (the loop says what it sent, through shared memory)."""
+    """/proc/net/can: the reader's socket holds the filters the production code derives for
+    this configuration (its ESCs' telemetry), plus the error-frame receiver python-can gives
+    every handle it opens. The output loop's socket holds exact IDs only: the echo of the
+    frames it sent (docs/running.md, "A bus that holds frames"). None of the reader's filters
+    passes a frame the bridge sent: its own commands are never read back (the loop says what
+    it sent, through shared memory)."""
     config = flight.family.bridge_config
     family = registry.family(config.output.protocol)
     filters = reader_filters(family, esc_table(config).node_ids, recording=False)
     assert filters is not None  # None is "every frame", for a recording
     want = sorted(kernel_receiver(f) for f in filters)
     held = flight.bridges_receivers()
-    got = sorted((row["list"], row["can_id"], row["can_mask"]) for row in held)
+    reader = flight.reader_owner()
+    got = sorted(
+        (row["list"], row["can_id"], row["can_mask"]) for row in held if row["owner"] == reader
+    )
     assert [r for r in got if r[0] != "err"] == want
     assert [r[0] for r in got if r[0] == "err"] == ["err"]
-    assert len({row["owner"] for row in held}) == 1, held
+    loop_rows = [row for row in held if row["owner"] != reader]
+    assert len({row["owner"] for row in loop_rows}) <= 1, held
+    assert all(row["list"] in ("eff", "sff", "err") for row in loop_rows), loop_rows
     read = flight.family.read()
     sent = [msg for _, msg in flight.frames if read(msg) is not None]
     assert sent, "no command on the bus"
