@@ -268,10 +268,11 @@ class Candump:
     (an interpreter's start and candump's own take seconds in a guest on a loaded host)."""
 
     def __init__(self, channel: str, *options: str, timeout_s: float = 60.0) -> None:
-        before = len(receivers(channel))
+        device = channel.split(",")[0]  # "can0,ID:MASK": candump's filters after the device
+        before = len(receivers(device))
         argv = ["candump", "-L", "-d", "-r", str(CANDUMP_BUFFER_BYTES), *options, channel]
-        self.process = start(argv, f"candump-{channel}")
-        wait_until(lambda: len(receivers(channel)) > before, timeout_s, "candump's socket")
+        self.process = start(argv, f"candump-{device}")
+        wait_until(lambda: len(receivers(device)) > before, timeout_s, "candump's socket")
 
     def drops(self) -> int:
         """The frames candump's socket dropped so far (its receive buffer overflowed)."""
