@@ -134,6 +134,16 @@ def find_arducopter() -> ArduCopterBuild | str:
     return ArduCopterBuild(binary.resolve(), defaults.resolve())
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_sitl_module_at_a_time() -> Iterator[None]:
+    """One SITL test module flies at a time on this machine, whichever xdist worker has it:
+    ArduCopter's four rigs (a bridge and simulated ESCs per family) beside PX4's flight put the
+    two cores at load 35 and failed both."""
+    with (Path(tempfile.gettempdir()) / "esc-bridge-sitl.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
 @pytest.fixture(scope="session")
 def arducopter_build() -> ArduCopterBuild:
     found = find_arducopter()
