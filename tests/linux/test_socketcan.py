@@ -381,7 +381,7 @@ class Flight:
         exact IDs only, the echo of its own frames."""
         owners = {row["owner"] for row in self.bridges_receivers() if row["list"] == "fil"}
         assert len(owners) == 1, self.bridges_receivers()
-        return owners.pop()
+        return str(owners.pop())
 
     def readers_filters(self, when: str) -> list[dict[str, Any]]:
         """The filters of the reader's socket, at ``when``."""
