@@ -43,6 +43,11 @@ settings.register_profile("loaded", deadline=None, suppress_health_check=[Health
 settings.load_profile("loaded")
 
 ROOT = Path(__file__).resolve().parent.parent
+STARTUP_TIMEOUT_S = 40.0
+"""How long a daemon started through its CLI may take to send its first frames: two
+interpreters' imports (the main process and the output loop's). About 1 s on a quiet machine;
+17 s was seen with the other xdist worker flying the ArduCopter SITL (load 8). A wait for
+readiness, not a claim about time: the tests that are about time measure from a ready daemon."""
 MULTICAST_GROUP = "239.74.163.2"
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import can
 import pytest
-from conftest import Autopilot, Daemon, Observer
+from conftest import STARTUP_TIMEOUT_S, Autopilot, Daemon, Observer
 from pymavlink import mavutil
 
 from bridge.errors import CodecError
@@ -24,8 +24,6 @@ from bridge.escs.dronecan.codec import DronecanFrame, NodeStatus
 from bridge.escs.dronecan.codec import RawCommand as DronecanRawCommand
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
-
-ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
 
 
 def ckesc_throttles(msg: can.Message) -> tuple[int, ...] | None:
@@ -87,7 +85,7 @@ def test_ckesc_throttle_sweep(
     daemon = start_daemon("--config", str(config), *extra)
     full_scale = 1000 if command == "10b" else 2000
     arm_at(autopilot, [1000, 1000, 1000, 1000])
-    expect_throttles(observer, (0, 0, 0, 0), ARM_TIMEOUT_S)
+    expect_throttles(observer, (0, 0, 0, 0), STARTUP_TIMEOUT_S)
     for pwm in SWEEP:
         # Four different values per step, so a swapped channel cannot pass.
         pwms = [pwm, 3000 - pwm, (pwm + 1000) // 2 + 250, 1000 + (pwm % 1000)]
@@ -130,7 +128,7 @@ def test_ft_modes(
         got[frame.esc_id] = value_of(frame.message)
         return all(abs(got.get(esc, -9) - v) < 1e-4 for esc, v in want.items())
 
-    observer.wait_for(matches, ARM_TIMEOUT_S)
+    observer.wait_for(matches, STARTUP_TIMEOUT_S)
     # Spread, not burst: consecutive commands go to consecutive ESCs, ~2.5 ms apart at 100 Hz.
     # Kernel receive times (udp_multicast stamps each datagram), not when the observer's
     # thread got to them: on a loaded machine it reads in batches.
@@ -196,10 +194,10 @@ def test_dronecan_commands_multi_frame_and_node_status(
     reader = DronecanReader(observer)
     pwm = [1000, 1250, 1500, 2000, 1100, 1900, 1750, 1000]
     arm_at(autopilot, pwm)
-    reader.wait_for(lambda f: raw_commands(f) == (0,) * 8, ARM_TIMEOUT_S)
+    reader.wait_for(lambda f: raw_commands(f) == (0,) * 8, STARTUP_TIMEOUT_S)
     # 1000..2000 µs is 0..1; ESC 8 is reversible, so 1000 µs is still 0 (the mixer's range).
     want = tuple(round(min(max((p - 1000) / 1000, 0.0), 1.0) * 8191) for p in pwm)
-    _, frame = reader.wait_for(lambda f: raw_commands(f) == want, ARM_TIMEOUT_S)
+    _, frame = reader.wait_for(lambda f: raw_commands(f) == want, STARTUP_TIMEOUT_S)
     assert (frame.priority, frame.source_node, frame.frames) == (7, 10, 3)
     start = time.monotonic()
     _, status = reader.wait_for(lambda f: isinstance(f.message, NodeStatus), 3.0, after=start)
@@ -225,7 +223,7 @@ def test_stale_input_goes_safe_within_timeout(
 ) -> None:
     start_daemon("--rate", "400")
     arm_at(autopilot, [1600, 1600, 1600, 1600])
-    expect_throttles(observer, (1200, 1200, 1200, 1200), ARM_TIMEOUT_S)
+    expect_throttles(observer, (1200, 1200, 1200, 1200), STARTUP_TIMEOUT_S)
     autopilot.pause_outputs()  # heartbeats go on: armed, but the output stream is stale
     stopped_at = time.monotonic()
     safe_at = expect_throttles(observer, (0, 0, 0, 0), 2.0, after=stopped_at)
@@ -242,7 +240,7 @@ def test_disarm_goes_safe_at_once(
 ) -> None:
     start_daemon()
     arm_at(autopilot, [1500, 1500, 1500, 1500])
-    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    expect_throttles(observer, (1000, 1000, 1000, 1000), STARTUP_TIMEOUT_S)
     autopilot.armed = False
     autopilot.heartbeat()
     disarmed_at = time.monotonic()
@@ -257,7 +255,7 @@ def test_sigterm_sends_safe_values_then_exits_zero(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500, 1500, 1500, 1500])
-    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    expect_throttles(observer, (1000, 1000, 1000, 1000), STARTUP_TIMEOUT_S)
     sent_at = time.monotonic()
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.stop() == 0
@@ -279,7 +277,7 @@ def test_sigint_is_handled_like_sigterm(
     start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer
 ) -> None:
     daemon = start_daemon()
-    expect_throttles(observer, (0, 0, 0, 0), ARM_TIMEOUT_S)
+    expect_throttles(observer, (0, 0, 0, 0), STARTUP_TIMEOUT_S)
     assert daemon.stop(signal.SIGINT) == 0
     assert "SIGINT: stopping" in daemon.output
 
@@ -297,7 +295,7 @@ def test_other_senders_are_ignored(
     config.write_text("[output]\ninput_timeout_ms = 1000\n")
     start_daemon("--config", str(config))
     arm_at(autopilot, [1500, 1500, 1500, 1500])
-    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    expect_throttles(observer, (1000, 1000, 1000, 1000), STARTUP_TIMEOUT_S)
     intruder = Autopilot(mavlink_port, system=7, component=1)
     try:
         intruder.pwm = [2000, 2000, 2000, 2000]
@@ -366,7 +364,7 @@ def test_loop_goes_safe_and_exits_when_the_main_process_dies(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500, 1500, 1500, 1500])
-    expect_throttles(observer, (1000, 1000, 1000, 1000), ARM_TIMEOUT_S)
+    expect_throttles(observer, (1000, 1000, 1000, 1000), STARTUP_TIMEOUT_S)
     killed_at = time.monotonic()
     daemon.proc.kill()  # no signal handler, no flush: the loop process is on its own
     daemon.proc.wait(5)
@@ -409,7 +407,9 @@ def test_px4_hil_actuator_controls(
 
         return once
 
-    feed_until(send([0.0, 0.25, 0.5, 1.0], armed), observer, (0, 500, 1000, 2000), ARM_TIMEOUT_S)
+    feed_until(
+        send([0.0, 0.25, 0.5, 1.0], armed), observer, (0, 500, 1000, 2000), STARTUP_TIMEOUT_S
+    )
     feed_until(send([0.0, 0.25, 0.5, 1.0], 0), observer, (0, 0, 0, 0), 2.0)
 
 
@@ -429,7 +429,9 @@ def test_nan_input_goes_safe(
 
         return once
 
-    feed_until(send([1500.0, 1250.0, 1750.0, 2000.0]), observer, (1000, 500, 1500, 2000), 10.0)
+    feed_until(
+        send([1500.0, 1250.0, 1750.0, 2000.0]), observer, (1000, 500, 1500, 2000), STARTUP_TIMEOUT_S
+    )
     nan_at = time.monotonic()
     safe_at = feed_until(send([1500.0, math.nan, 1500.0, 1500.0]), observer, (0, 0, 0, 0), 2.0)
     assert safe_at - nan_at < 0.2  # the next tick after the NaN input is read
@@ -448,7 +450,7 @@ def test_geometry_mixer_from_configured_channels(
     arm_at(autopilot, [1500, 1500, 1500, 1500])  # level, half thrust
     _, hover = observer.wait_for(
         lambda m: (t := ckesc_throttles(m)) is not None and len(set(t)) == 1 and t[0] > 500,
-        ARM_TIMEOUT_S,
+        STARTUP_TIMEOUT_S,
     )
     level = ckesc_throttles(hover)
     assert level is not None

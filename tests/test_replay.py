@@ -29,10 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ROOT, Daemon, Observer
+from conftest import ROOT, STARTUP_TIMEOUT_S, Daemon, Observer
 from pymavlink import mavutil
 from pymavlink.dialects.v10 import ardupilotmega as mavlink1
-from test_daemon_e2e import ARM_TIMEOUT_S, ckesc_throttles, pwm_to_throttle
+from test_daemon_e2e import ckesc_throttles, pwm_to_throttle
 
 DATA_TLOGS = ROOT / "tests" / "data" / "tlogs"
 SAMPLES = 40  # outputs checked per log, spread over the whole log
@@ -290,7 +290,7 @@ def test_replay_tlog(
                 if step.armed
                 else (0, 0, 0, 0)
             )
-            deadline = time.monotonic() + (ARM_TIMEOUT_S if first else 3.0)
+            deadline = time.monotonic() + (STARTUP_TIMEOUT_S if first else 3.0)
             first = False
             matched = False
             while not matched and time.monotonic() < deadline:

@@ -14,9 +14,9 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from conftest import Autopilot, Daemon, Observer, RealtimeAutopilot
+from conftest import STARTUP_TIMEOUT_S, Autopilot, Daemon, Observer, RealtimeAutopilot
 from pymavlink import mavutil
-from test_daemon_e2e import ARM_TIMEOUT_S, arm_at, ckesc_throttles, expect_throttles
+from test_daemon_e2e import arm_at, ckesc_throttles, expect_throttles
 
 from loadgen.load import preset
 
@@ -77,7 +77,7 @@ def test_a_stop_signal_flushes_safe_values_and_exits_zero(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     sent_at = time.monotonic()
     if target == "group":
         os.killpg(daemon.proc.pid, sig)
@@ -120,7 +120,7 @@ def test_the_loop_dying_makes_the_main_process_send_safe_values_and_exit_one(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     loop = daemon.loop_pid()
     killed_at = time.monotonic()
     os.kill(loop, signal.SIGKILL)
@@ -136,7 +136,7 @@ def test_the_main_process_dying_makes_the_loop_flush_at_once(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     killed_at = time.monotonic()
     daemon.proc.kill()
     daemon.proc.wait(5)
@@ -162,7 +162,7 @@ def test_a_stalled_main_process_does_not_touch_the_control_path(
     """The main process (telemetry, Zenoh, commands) stopped for 1.5 s: not one safe frame."""
     daemon = start_daemon()
     pilot = rt_autopilot([1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     start = time.monotonic()
     os.kill(daemon.proc.pid, signal.SIGSTOP)
     try:
@@ -184,7 +184,7 @@ def test_input_that_sat_in_the_socket_past_the_timeout_never_moves_a_motor(
     in the socket are 2.7 s old when it resumes, and go nowhere."""
     daemon = start_daemon()
     pilot = rt_autopilot([1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     loop = daemon.loop_pid()
     os.kill(loop, signal.SIGSTOP)
     try:
@@ -216,7 +216,7 @@ def test_a_burst_of_old_inputs_is_judged_by_the_autopilots_clock(
 
     try:
         # 1 s of a normal stream: the bridge learns the autopilot's clock.
-        deadline = time.monotonic() + ARM_TIMEOUT_S
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
         seen_hover = False
         while time.monotonic() < deadline and not seen_hover:
             mav.heartbeat_send(2, 3, armed, 0, 4)
@@ -257,7 +257,7 @@ def test_a_lost_heartbeat_means_disarmed_after_the_arming_timeout(
     config.write_text("[output]\narming_timeout_ms = 1000\n")
     daemon = start_daemon("--config", str(config))
     pilot = rt_autopilot([1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     time.sleep(1.1)  # past the next HEARTBEAT
     pilot.heartbeats(False)
     stopped_at = time.monotonic()
@@ -283,7 +283,7 @@ def test_a_stream_too_slow_never_starts_the_motors_and_one_slowing_in_flight_kee
     daemon = start_daemon()
     daemon.loop_pid()  # its link is open: the first HEARTBEAT is heard
     # Its frames are on the bus (at load 8 the first came 2.25 s after the loop's start).
-    expect_throttles(observer, SAFE, ARM_TIMEOUT_S)
+    expect_throttles(observer, SAFE, STARTUP_TIMEOUT_S)
     pilot = rt_autopilot([1500] * 4, rate_hz=8)
     started = time.monotonic()
     time.sleep(2.5)
@@ -308,7 +308,7 @@ def test_grossly_out_of_range_pwm_is_invalid_never_full_throttle(
 ) -> None:
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     bad_at = time.monotonic()
     autopilot.pwm = [1500, pwm, 1500, 1500]
     safe_at = expect_throttles(observer, SAFE, 2.0, after=bad_at)
@@ -329,7 +329,7 @@ def test_a_failsafe_while_the_main_process_stalls_is_still_reported(
     reports the failsafe it did not see, then the state the loop is in."""
     daemon = start_daemon()
     arm_at(autopilot, [1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     os.kill(daemon.proc.pid, signal.SIGSTOP)  # the main process: the supervisor, the log
     try:
         bad_at = time.monotonic()
@@ -369,7 +369,7 @@ def test_out_of_range_floats_on_a_float_source_are_invalid(
         conn.mav.hil_actuator_controls_send(time.monotonic_ns() // 1000, padded, armed, 0)
 
     try:
-        deadline = time.monotonic() + ARM_TIMEOUT_S
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while time.monotonic() < deadline:
             send([0.5] * 4)
             time.sleep(0.01)
@@ -402,7 +402,7 @@ def test_an_autopilot_that_rebooted_is_disarmed_until_its_own_heartbeat_says_oth
 
     try:
         booted = time.monotonic()
-        deadline = booted + ARM_TIMEOUT_S
+        deadline = booted + STARTUP_TIMEOUT_S
         while not any(t == HOVER for _, t in throttles_since(observer, 0)):
             assert time.monotonic() < deadline, "never armed"
             mav.heartbeat_send(2, 3, armed, 0, 4)
@@ -434,7 +434,7 @@ def test_no_safe_frame_while_the_autopilot_is_fine_on_a_loaded_machine(
     autopilot streams at 200 Hz from a real-time process and the bridge never goes safe."""
     daemon = start_daemon()
     pilot = rt_autopilot([1500] * 4)
-    expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+    expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     loads = preset("busy2") if load == "busy2" else preset("can-flood-60k", can_port=can_port)
     with loads:
         start = time.monotonic()

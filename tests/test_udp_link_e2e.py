@@ -17,10 +17,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from conftest import Autopilot, Daemon, Observer
+from conftest import STARTUP_TIMEOUT_S, Autopilot, Daemon, Observer
 from datagram_fuzz import ARMED as ARMED_MODE
 from datagram_fuzz import DISARMED, fuzz_datagrams, heartbeat, packer
-from test_daemon_e2e import ARM_TIMEOUT_S, ckesc_throttles, expect_throttles
+from test_daemon_e2e import ckesc_throttles, expect_throttles
 
 from loadgen.load import preset
 
@@ -61,7 +61,7 @@ def heard(sock: socket.socket, port: int, datagram: bytes) -> None:
     """Send ``datagram`` from ``sock`` until the bridge answers it (its own HEARTBEAT, a second):
     then the bridge's link is open and has read what came from ``sock``."""
     sock.settimeout(0.2)
-    deadline = time.monotonic() + ARM_TIMEOUT_S
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while True:
         assert time.monotonic() < deadline, "the bridge never answered"
         sock.sendto(datagram, (HOST, port))
@@ -165,7 +165,7 @@ def test_an_autopilot_restarted_on_a_new_port_is_followed_once_the_old_one_is_si
         first.pwm = [1500] * 4
         first.armed = True
         first.start_stream(50)
-        expect_throttles(observer, HOVER, ARM_TIMEOUT_S)
+        expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S)
     finally:
         first.close()  # its thread has sent its last datagram when this returns
     silent_from = time.monotonic()
@@ -174,7 +174,7 @@ def test_an_autopilot_restarted_on_a_new_port_is_followed_once_the_old_one_is_si
         restarted.pwm = [1500] * 4
         restarted.armed = True
         restarted.start_stream(50)
-        back_at = expect_throttles(observer, HOVER, ARM_TIMEOUT_S, after=silent_from + 0.2)
+        back_at = expect_throttles(observer, HOVER, STARTUP_TIMEOUT_S, after=silent_from + 0.2)
         new_port = restarted.conn.port.getsockname()[1]
     finally:
         restarted.close()

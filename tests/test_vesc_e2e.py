@@ -22,7 +22,15 @@ from typing import Any
 import can
 import pytest
 import zenoh
-from conftest import Autopilot, Daemon, MavlinkReceiver, Observer, free_port, multicast_bus
+from conftest import (
+    STARTUP_TIMEOUT_S,
+    Autopilot,
+    Daemon,
+    MavlinkReceiver,
+    Observer,
+    free_port,
+    multicast_bus,
+)
 
 from bridge.daemon.absence import GRACE_S
 from bridge.errors import CodecError
@@ -40,7 +48,6 @@ from bridge.escs.vesc.records import (
 )
 from bridge.mavlink import load_dialect
 
-ARM_TIMEOUT_S = 10.0  # generous: a cold start spawns the loop's interpreter first
 EVERY_MESSAGE = "autopilot_messages = { esc_status = 10, esc_info = 5, esc_telemetry = 10 }\n"
 dialect = load_dialect()
 INT16_MAX = 32767
@@ -99,7 +106,7 @@ def test_vesc_modes_spread_and_safe_output(
         got[command[0]] = value_of(command[1])
         return all(abs(got.get(esc, -9) - v) < 1e-4 for esc, v in want.items())
 
-    observer.wait_for(matches, ARM_TIMEOUT_S)
+    observer.wait_for(matches, STARTUP_TIMEOUT_S)
     # Spread, not burst: consecutive commands go to consecutive VESCs, ~1.25 ms apart at
     # 200 Hz (kernel receive times: the observer's thread reads in batches on a loaded machine).
     recent = [

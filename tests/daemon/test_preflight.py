@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ESC_BRIDGE, ROOT, Daemon, Observer, can_args
+from conftest import ESC_BRIDGE, ROOT, STARTUP_TIMEOUT_S, Daemon, Observer, can_args
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -34,7 +34,6 @@ from bridge.mixing.loader import load_mixer
 from bridge.mixing.mixer import Mixer
 
 EXAMPLES = sorted((ROOT / "config").glob("*.toml"))
-ARM_TIMEOUT_S = 10.0  # a cold start spawns the output loop's interpreter first
 QUIET_S = 0.3  # how long a refused start is watched for stray frames
 
 
@@ -838,7 +837,7 @@ def test_run_and_check_agree(
     if good:
         assert check.returncode == 0, check.stderr
         assert check.stdout.startswith(f"{config}: OK\n")
-        observer.wait_for(lambda msg: True, ARM_TIMEOUT_S)  # run sends (safe values)
+        observer.wait_for(lambda msg: True, STARTUP_TIMEOUT_S)  # run sends (safe values)
         assert daemon.stop() == 0, daemon.output
         if extra[:1] == ["--record"]:
             recorded = sorted(p.suffix for p in Path(fill(extra[1])).iterdir())
