@@ -61,8 +61,6 @@ MAVTAP = Path(__file__).resolve().parent / "mavtap.py"
 
 # ArduPilot SITL's TCP ports for instance 0 (SERIAL0, SERIAL1, SERIAL2); ``-I N`` adds 10·N.
 ARDUPILOT_SERIAL_PORTS = (5760, 5762, 5763)
-# A further SERIALn a test adds (ArduCopter(serials=...)): ``--serialn tcp:n`` listens on 5760 + n.
-ARDUPILOT_TCP_BASE = 5760
 # The sim's own UDP port (RC input) at instance 0, also shifted by 10·N.
 ARDUPILOT_UDP_PORTS = (5501,)
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux's; Python names it from 3.12
@@ -330,6 +328,28 @@ def wait_until(
         time.sleep(poll_s)
 
 
+def make_realtime(pid: int) -> bool:
+    """Run process ``pid`` at a low SCHED_FIFO priority where permitted (5: below the bridge's
+    loop, 50); whether it was permitted.
+
+    For the processes that play the hardware around the companion computer: the autopilot and
+    the wire to it (the tap). SITL's clock (``time_usec``) is simulated time, which stands still
+    while the process waits for a CPU, and a tap that waits delivers the outputs in bursts; a
+    flight controller's hardware timer and a UART do neither. On a loaded test machine (2
+    cores, the other xdist worker's tests beside) gaps of 100-300 ms were seen, each a stale
+    input to the bridge, which then rightly went safe, and after the flight's 1 s stall the
+    tap's bursts kept the bridge judging the inputs old for 1-12 s. Both sleep nearly all the
+    time, so the priority costs the machine little (not so the ESC simulators: see
+    :func:`start_sim`). Threads inherit the policy from the thread that creates them; any
+    already there get it here too."""
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            os.sched_setscheduler(int(task.name), os.SCHED_FIFO, os.sched_param(5))
+    except (PermissionError, OSError):
+        return False
+    return True
+
+
 class SitlAutopilot:
     """What a test does to an autopilot's SITL process, whichever autopilot it is."""
 
@@ -364,8 +384,7 @@ class ArduCopter(SitlAutopilot):
 
     Its defaults file is the build's ``copter.parm`` plus ``params`` (written to the working
     directory). SITL starts its loop only when something connects to SERIAL0, so connect the
-    ground station there first. ``serials``: more MAVLink 2 links, SERIALn for each n (3..9)
-    on TCP 5760 + n (+ 10·instance; :meth:`port`), beside SERIAL1 and SERIAL2."""
+    ground station there first."""
 
     def __init__(
         self,
@@ -373,20 +392,13 @@ class ArduCopter(SitlAutopilot):
         workdir: Path,
         instance: int,
         params: dict[str, float] | None = None,
-        serials: Sequence[int] = (),
     ) -> None:
         self.build = build
         self.workdir = workdir
         self.instance = instance
-        self.serials = tuple(serials)
-        assert all(3 <= n <= 9 for n in self.serials), f"SERIAL3..9 only: {self.serials}"
         workdir.mkdir(parents=True, exist_ok=True)
         self.defaults = workdir / "defaults.parm"
-        # SERIALn_PROTOCOL 2: MAVLink 2 (SITL's SERIAL3 and 4 are GPS by default).
-        links = {f"SERIAL{n}_PROTOCOL": 2.0 for n in self.serials}
-        extra = "".join(
-            f"{name} {value:g}\n" for name, value in {**links, **(params or {})}.items()
-        )
+        extra = "".join(f"{name} {value:g}\n" for name, value in (params or {}).items())
         self.defaults.write_text(
             build.defaults.read_text()
             + "\n# esc-bridge tests: ESC data comes from the bridge\n"
@@ -397,8 +409,7 @@ class ArduCopter(SitlAutopilot):
         self.realtime = False
 
     def port(self, serial: int) -> int:
-        base = ARDUPILOT_SERIAL_PORTS[serial] if serial < 3 else ARDUPILOT_TCP_BASE + serial
-        return base + 10 * self.instance
+        return ARDUPILOT_SERIAL_PORTS[serial] + 10 * self.instance
 
     def start(self) -> None:
         self.starts += 1
@@ -412,30 +423,11 @@ class ArduCopter(SitlAutopilot):
                 "--defaults",
                 str(self.defaults),
                 f"-I{self.instance}",
-                *(arg for n in self.serials for arg in (f"--serial{n}", f"tcp:{n}")),
             ],
             self.workdir / f"arducopter-{self.starts}.log",
             cwd=self.workdir,
         )
-        self.realtime = self.make_realtime()
-
-    def make_realtime(self) -> bool:
-        """Run SITL at a low SCHED_FIFO priority where permitted (below the bridge's loop, 50).
-
-        Why: SITL's clock (``time_usec``) is simulated time, which falls behind when the
-        process waits for a CPU. A flight controller's clock is a hardware timer that never
-        does, and on a loaded test machine (2 cores, other tests beside) a lag of a few hundred
-        ms was seen; the bridge then rightly takes the inputs for old ones. SITL sleeps ~96 %
-        of the time, so the priority costs the machine nothing. Threads inherit the policy
-        from the thread that creates them; any already there get it here too. Returns whether
-        it was permitted."""
-        assert self.process is not None
-        try:
-            for task in Path(f"/proc/{self.process.proc.pid}/task").iterdir():
-                os.sched_setscheduler(int(task.name), os.SCHED_FIFO, os.sched_param(5))
-        except (PermissionError, OSError):
-            return False
-        return True
+        self.realtime = make_realtime(self.process.pid)
 
 
 def write_bridge_config(
@@ -493,11 +485,17 @@ def start_bridge(
 
 
 def start_sim(can_port: int, log_path: Path, protocol: str, *extra: str) -> Process:
-    """``esc-bridge sim``: four simulated ESCs, IDs (and CKESC throttle channels) 1..4."""
-    return Process(
+    """``esc-bridge sim``: four simulated ESCs, IDs (and CKESC throttle channels) 1..4, at nice
+    -5 where permitted: ESCs whose telemetry does not pause for the other tests' load (a
+    DroneCAN simulator fell silent for 794 ms at nice 0 beside the other xdist worker; at a
+    real-time priority four of them starved the bridges)."""
+    sim = Process(
         [ESC_BRIDGE, "sim", "--protocol", protocol, "--escs", "4", *can_args(can_port), *extra],
         log_path,
     )
+    with contextlib.suppress(PermissionError, ProcessLookupError):
+        os.setpriority(os.PRIO_PROCESS, sim.pid, -5)
+    return sim
 
 
 # --------------------------------------------------------------------------------------------
@@ -534,6 +532,7 @@ class MavTap:
         self.process = Process(
             [sys.executable, str(MAVTAP), str(self.log_path), *args], workdir / "mavtap.out"
         )
+        self.realtime = make_realtime(self.process.pid)
         deadline = time.monotonic() + 20
         while not (self.log_path.exists() and "listening" in self.log_path.read_text()):
             assert self.process.proc.poll() is None, f"mavtap died:\n{self.process.tail()}"
