@@ -1,4 +1,4 @@
-"""The bridge against a real ArduCopter SITL: one autopilot start, one flight, many checks.
+"""The bridge against a real ArduCopter SITL: two flights, two rigs each, many checks.
 
 What runs (all on loopback, see conftest.py): ArduCopter SITL (quad, real time) with a ground
 station on SERIAL0 and two bridges through their CLI on SERIAL1 and SERIAL2, each through a
