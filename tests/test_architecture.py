@@ -124,7 +124,7 @@ def test_no_module_imports_itself_back(type_checking: bool) -> None:
 
 
 PURE = re.compile(
-    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload|json_schema)|output\.safety"
+    r"bridge\.(mixing(\..*)?|telemetry\.(state|payload|json_schema|mcap_channels)|output\.safety"
     r"|monitor\.web\.model"
     r"|can_errors|backoff"
     r"|escs\.(family|registry|uavcan_v0)"
