@@ -636,15 +636,21 @@ def fly_rigs(build: ArduCopterBuild, workdir: Path, names: Sequence[str]) -> Fli
             for rig in rigs:
                 rig.prepare()
         result.events["end"] = time.monotonic()
-        measured("ArduCopter flight wall time", f"{result.events['end'] - started:.1f} s")
-        measured("ArduCopter SITL and its tap at SCHED_FIFO 5", f"{ap.realtime}, {tap.realtime}")
+        measured(
+            f"ArduCopter flight wall time ({flight_id(tuple(names))})",
+            f"{result.events['end'] - started:.1f} s",
+        )
+        measured(
+            f"ArduCopter SITL and its tap at SCHED_FIFO 5 ({flight_id(tuple(names))})",
+            f"{ap.realtime}, {tap.realtime}",
+        )
         for rig in rigs:
             measured(
                 f"{rig.name} frames decoded by the test",
                 f"{rig.decoded} in {rig.decode_s:.1f} s (its decoding thread, during the flight)",
             )
         measured(
-            "ArduCopter arming accepted",
+            f"ArduCopter arming accepted ({flight_id(tuple(names))})",
             f"{result.events['armed'] - result.events['restart']:.1f} s after its (re)start, "
             f"attempt {result.arm_attempts}",
         )
