@@ -23,6 +23,7 @@ import pytest
 import zenoh
 from conftest import (
     ESC_BRIDGE,
+    STARTUP_TIMEOUT_S,
     Autopilot,
     Daemon,
     MavlinkReceiver,
@@ -155,7 +156,7 @@ def test_esc_status_info_and_telemetry_for_every_esc(
             def all_online(msg: Any, first: int = index, online: int = mask) -> bool:
                 return bool(msg.index == first and msg.info == online)
 
-            status = receiver.wait_for("ESC_STATUS", all_reporting, timeout_s=10)
+            status = receiver.wait_for("ESC_STATUS", all_reporting, timeout_s=STARTUP_TIMEOUT_S)
             info = receiver.wait_for("ESC_INFO", all_online, timeout_s=10)
             for slot in range(4):
                 esc = index + slot + 1  # node = motor number
@@ -201,7 +202,7 @@ def test_offline_after_the_timeout_and_back(
     try:
         start_daemon("--config", str(config))
         autopilot.start_stream(20)
-        receiver.wait_for("ESC_INFO", lambda m: m.info == 0b1111)
+        receiver.wait_for("ESC_INFO", lambda m: m.info == 0b1111, timeout_s=STARTUP_TIMEOUT_S)
         silent.add(2)
         went = time.monotonic()
         receiver.wait_for("ESC_INFO", lambda m: m.info == 0b1101, after=went)
@@ -252,7 +253,9 @@ def test_ft_crc_errors_count_into_error_count_and_raise_generic(
     try:
         start_daemon("--protocol", "ft", "--config", str(config))
         autopilot.start_stream(20)
-        status = receiver.wait_for("ESC_STATUS", lambda m: m.rpm[3] != 0)
+        status = receiver.wait_for(
+            "ESC_STATUS", lambda m: m.rpm[3] != 0, timeout_s=STARTUP_TIMEOUT_S
+        )
         assert list(status.rpm) == [-1000, -2000, -3000, -4000]  # erpm / 7, signed
         info = receiver.wait_for("ESC_INFO", lambda m: m.error_count[2] >= 10)
         assert info.error_count[0] == info.error_count[1] == info.error_count[3] == 0
@@ -302,7 +305,9 @@ def test_dronecan_status_and_node_status_to_mavlink(
     try:
         start_daemon("--config", str(config))
         autopilot.start_stream(20)
-        status = receiver.wait_for("ESC_STATUS", lambda m: m.rpm[3] != 0)
+        status = receiver.wait_for(
+            "ESC_STATUS", lambda m: m.rpm[3] != 0, timeout_s=STARTUP_TIMEOUT_S
+        )
         assert list(status.rpm) == [-1000, -2000, -3000, -4000]  # signed, as the ESCs sent
         assert list(status.voltage) == pytest.approx([20.25, 20.5, 20.75, 21.0], abs=1e-3)
         assert list(status.current) == pytest.approx([1.0, 2.0, 3.0, 4.0], abs=1e-3)
@@ -339,7 +344,9 @@ def test_gcs_on_an_extra_output_sets_the_rate(
     try:
         start_daemon("--config", str(config))
         autopilot.start_stream(20)
-        receiver.wait_for("HEARTBEAT", lambda m: m.get_srcComponent() == 191)
+        receiver.wait_for(
+            "HEARTBEAT", lambda m: m.get_srcComponent() == 191, timeout_s=STARTUP_TIMEOUT_S
+        )
         receiver.wait_for("ESC_STATUS", lambda m: m.rpm[0] == 1000)
         gcs.mav.srcSystem, gcs.mav.srcComponent = 255, 190
         gcs.mav.command_long_send(
