@@ -311,10 +311,7 @@ class Daemon:
             time.sleep(0.05)
         raise AssertionError("no output loop process found")
 
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 30.0) -> int:
-        """Signal it and wait for its exit status; SIGKILL after ``timeout_s``. Generous: an
-        exit (safe values flushed, Zenoh closed, two interpreters torn down) took over 10 s
-        once in the whole suite at CI's load; the tests about time measure it themselves."""
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
         try:
