@@ -101,11 +101,12 @@ def test_a_failing_call_says_what_it_ran(linux: Kernel) -> None:
 # -- every family, one flight each -------------------------------------------------------------
 
 
-def fly(config: str, pwm: list[int]) -> dict[str, Any]:
-    """In the kernel: the bridge and simulated ESCs on a vcan of their own, one flight."""
+def fly(family: str, pwm: list[int]) -> dict[str, Any]:
+    """In the kernel: the bridge and simulated ESCs on a vcan of their own, one flight of
+    ``family`` (a key of :data:`FAMILIES`)."""
     channel = guest.vcan()
     path = guest.scratch() / "bridge.toml"
-    path.write_text(config)
+    path.write_text(FAMILIES[family].config)
     dump = guest.Candump(channel)
     before_bridge = guest.receivers(channel)
     port = free_port()
@@ -158,6 +159,14 @@ def fly(config: str, pwm: list[int]) -> dict[str, Any]:
         time.sleep(STALE_FOR_S)
         marks["resumed"] = time.time()
         pilot.resume_outputs()
+        # The flight goes on once the outputs are on the bus again: a guest that stood still
+        # (the host running others) may take longer than RESUMED_FOR_S to get there.
+        guest.wait_until(
+            lambda: _commanded_since(dump, FAMILIES[family].read(), marks["resumed"], pwm),
+            START_TIMEOUT_S,
+            "the autopilot's outputs on the bus again after the stale spell",
+        )
+        marks["outputs_again"] = time.time()
         time.sleep(RESUMED_FOR_S)
         marks["terminated"] = time.time()
         code = bridge.stop(signal.SIGTERM)
@@ -186,6 +195,19 @@ def fly(config: str, pwm: list[int]) -> dict[str, Any]:
             "after_flood": after_flood,
         },
     }
+
+
+def _commanded_since(dump: guest.Candump, read: Reader, since: float, pwm: list[int]) -> bool:
+    """Whether candump saw a command of ``pwm``'s outputs after ``since``."""
+    want = {i: (p - 1000) / 1000 for i, p in enumerate(pwm)}
+    for line in dump.lines():
+        if not guest.CANDUMP_LINE.match(line):
+            continue  # candump's own notes (its drops)
+        t, msg = guest.candump_message(line)
+        commands = read(msg) if t >= since else None
+        if commands is not None and same(commands, want):
+            return True
+    return False
 
 
 # -- the host's side ---------------------------------------------------------------------------
@@ -407,7 +429,7 @@ def same(got: Commands, want: Commands) -> bool:
 @pytest.fixture(scope="module", params=sorted(FAMILIES))
 def flight(request: pytest.FixtureRequest, linux: Kernel) -> Iterator[Flight]:
     family = FAMILIES[request.param]
-    result = linux.call(fly, config=family.config, pwm=PWM)
+    result = linux.call(fly, family=request.param, pwm=PWM)
     read = family.read()
     frames = [guest.candump_message(line) for line in result["frames"]]
     commands = [(t, decoded) for t, msg in frames if (decoded := read(msg)) is not None]
