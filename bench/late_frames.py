@@ -43,9 +43,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 from linux import late_frames  # noqa: E402 (tests/ on the path first)
-from linux.kernel import MODE_ENV, Kernel, boot, choose  # noqa: E402
-
-os.environ.setdefault(MODE_ENV, "auto")  # a bench asks for the kernel the tests opt into
+from linux.kernel import Kernel, boot, choose  # noqa: E402
 
 
 def _archive(rev: str, into: Path) -> str:

@@ -38,8 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from _readback import measure
 from linux.kernel import MODE_ENV, boot, choose
 
-os.environ.setdefault(MODE_ENV, "auto")  # a bench asks for the kernel the tests opt into
-
 
 def cpu_percent(run: dict[str, Any]) -> float:
     return 100 * float(run["cpu_s"]) / float(run["seconds"])

@@ -28,9 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from _service import cycles
-from linux.kernel import MODE_ENV, boot_systemd, systemd_refusal
-
-os.environ.setdefault(MODE_ENV, "auto")  # a bench asks for the kernel the tests opt into
+from linux.kernel import boot_systemd, systemd_refusal
 from linux.service import RATE_HZ, unit_seconds, vehicle_config
 
 ROWS = {

@@ -7,8 +7,7 @@ as ``linux.<module>``, or of one in ``bench/``) where the kernel is, with the he
 :mod:`linux.guest`, and returns what it returned (plain JSON data). One kernel holds every call
 of a test session: a call makes its own interfaces and processes and removes them at its end.
 
-Where it runs, in this order (``ESC_BRIDGE_LINUX`` = ``auto``; unset, the tests skip: opt-in
-for now, ``OPT_IN``):
+Where it runs, in this order (``ESC_BRIDGE_LINUX`` unset or ``auto``):
 
 - ``host``: the host can make a vcan itself (root, the vcan module: a Linux machine with
   SocketCAN). The agent runs as a subprocess; the interfaces get names of their own and never
@@ -223,16 +222,9 @@ def uml_refusal() -> str:
     return ""
 
 
-# Opt-in for now: two of these tests still fail (the full receive queue's report, the CKESC
-# 14b flight's resume), and they take about ten minutes, more than the suite's budget.
-OPT_IN = f"opt-in for now: {MODE_ENV}=auto .venv/bin/python -m pytest -n 0 tests/linux"
-
-
 def choose() -> tuple[str, str]:
     """(mode, '') for the kernel to use, or ('', why none can be: the reason to skip)."""
-    if MODE_ENV not in os.environ:
-        return "", f"the real-kernel tests are {OPT_IN}"
-    asked = os.environ[MODE_ENV]
+    asked = os.environ.get(MODE_ENV, "auto")
     reasons = [f"{MODE_ENV}=off"] if asked == "off" else []
     if asked in ("auto", "host"):
         refusal = host_vcan_refusal()
@@ -296,9 +288,7 @@ def boot(mode: str, workdir: Path) -> Kernel:
 def systemd_refusal() -> str:
     """Why systemd cannot be booted in User-Mode Linux here ('' when it can), with the install
     line."""
-    if MODE_ENV not in os.environ:
-        return f"the real-kernel tests are {OPT_IN}"
-    asked = os.environ[MODE_ENV]
+    asked = os.environ.get(MODE_ENV, "auto")
     if asked not in ("auto", "uml"):
         return f"{MODE_ENV}={asked} (systemd runs in User-Mode Linux only); {INSTALL}"
     refusal = _systemd_refusal()
