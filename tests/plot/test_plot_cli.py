@@ -50,6 +50,10 @@ def recorded(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFa
     return directory
 
 
+# Which recording is drawn, and the refusals, do not depend on the ESC family: one is enough.
+ONE_FAMILY = pytest.mark.parametrize("recorded", ["ckesc"], indirect=True)
+
+
 def test_a_recorded_demo_flight_is_drawn(recorded: Path, tmp_path: Path) -> None:
     (files,) = find_recordings(recorded)
     result = esc_bridge("plot", str(recorded), "--out", str(tmp_path))
@@ -84,6 +88,7 @@ def test_a_recorded_demo_flight_is_drawn(recorded: Path, tmp_path: Path) -> None
         assert [run for run in esc.failures if run.end_s > first_command_s + 0.05] == []
 
 
+@ONE_FAMILY
 def test_the_newest_recording_one_named_or_all(recorded: Path, tmp_path: Path) -> None:
     (files,) = find_recordings(recorded)
     names = ["esc-bridge-20260101-120000", "esc-bridge-20260101-120000-1"]
@@ -116,6 +121,7 @@ def test_a_directory_that_is_not_a_recording_is_refused(tmp_path: Path) -> None:
     )
 
 
+@ONE_FAMILY
 def test_a_recording_without_its_tlog_is_refused(recorded: Path, tmp_path: Path) -> None:
     (files,) = find_recordings(recorded)
     shutil.copy(files.log_path, tmp_path)
@@ -124,6 +130,7 @@ def test_a_recording_without_its_tlog_is_refused(recorded: Path, tmp_path: Path)
     assert f"its MAVLink tlog {files.name}.tlog is missing" in result.stderr
 
 
+@ONE_FAMILY
 def test_without_matplotlib_it_says_what_to_install(recorded: Path, tmp_path: Path) -> None:
     # The interpreter refuses to import matplotlib, as one without it installed does.
     code = (
