@@ -66,8 +66,8 @@ class Heartbeat:
         self._send_all = send_all
         self._send_autopilot = send_autopilot
         # Arrival-rate window, owned by the autopilot's reader thread.
-        self._window_start_ns = 0
-        self._window_count = 0
+        self._window_start_ns: int | None = None  # the note the rate window starts at
+        self._window_count = 0  # outputs noted after it
         self._outputs_noted = 0  # the last total given to note_outputs
         self._logged_rate_hz = 0.0
         self._slow_logged = False
@@ -125,15 +125,20 @@ class Heartbeat:
         """Count outputs and update the arrival-rate estimate."""
         stats = self._stats
         stats.outputs += count
-        if self._window_count == 0 or now - stats.last_output_ns > _RATE_WINDOW_NS:
-            self._window_start_ns, self._window_count = now, count
+        # The rate is the outputs noted after the window's first note over the time since it:
+        # an output noted at the first note arrived before it. (Counted in batches, as the
+        # control loop reports them, a count paired with the wrong span was off by a whole
+        # batch: a 10 Hz stream read as 11 Hz when one report came late.)
+        start = self._window_start_ns
+        if start is None or now - stats.last_output_ns > _RATE_WINDOW_NS:
+            self._window_start_ns, self._window_count = now, 0
         else:
             self._window_count += count
-            elapsed = now - self._window_start_ns
+            elapsed = now - start
             if elapsed >= _RATE_WINDOW_NS:
-                rate = (self._window_count - count) * 1e9 / elapsed
+                rate = self._window_count * 1e9 / elapsed
                 stats.output_rate_hz = rate
-                self._window_start_ns, self._window_count = now, count
+                self._window_start_ns, self._window_count = now, 0
                 self._log_rate(rate)
         stats.last_output_ns = now
 

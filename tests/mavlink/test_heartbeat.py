@@ -180,3 +180,21 @@ def test_a_stream_too_slow_for_the_input_timeout_is_reported(
     assert "will not arm on it; [mavlink] stream_rate_hz is 0: give it a rate to ask" in (
         caplog.text
     )
+
+
+def test_outputs_counted_in_batches_give_their_stream_rate() -> None:
+    """The control loop reports its count of outputs now and then: a 10 Hz stream (outputs at
+    0.05, 0.15, ... s) reported three at once at 0.3 s, then one every 0.1 s. The rate is what
+    arrived after the window's first report over the time since it: 10 Hz, not 12 (the three
+    reported first arrived before the window began)."""
+    link = MavlinkLink(
+        MavlinkConfig(url=f"udpin:127.0.0.1:{free_port()}", stream_rate_hz=0.0),
+        needed_rate_hz=0.0,
+    )  # never started: only its count of outputs is used
+    base_ns = time.monotonic_ns()
+    total = 3
+    link.note_outputs(total, base_ns + 300_000_000)
+    for report in range(1, 11):
+        total += 1
+        link.note_outputs(total, base_ns + 300_000_000 + report * 100_000_000)
+    assert link.stats.output_rate_hz == pytest.approx(10.0)
