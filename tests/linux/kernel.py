@@ -50,6 +50,8 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 TESTS = ROOT / "tests"
 INIT = Path(__file__).resolve().parent / "uml_init.sh"
 SYSTEMD_INIT = Path(__file__).resolve().parent / "uml_systemd_init.sh"
+UNIT = ROOT / "config" / "esc-bridge.service"
+INSTALLED_AT = "/opt/esc-bridge"  # the checkout in the systemd guest, as docs/service.md says
 MODE_ENV = "ESC_BRIDGE_LINUX"
 CACHE_ENV = "ESC_BRIDGE_CACHE"
 INSTALL = "sudo apt-get install user-mode-linux can-utils kmod iproute2"
@@ -322,12 +324,29 @@ def boot_systemd(workdir: Path, config: str) -> Kernel:
     setup = workdir / "setup"
     setup.mkdir(parents=True, exist_ok=True)
     (setup / "config.toml").write_text(config)
-    drop_in = _shown_again()
-    if drop_in:
-        (setup / "esc-bridge.service.d").mkdir(exist_ok=True)
-        (setup / "esc-bridge.service.d" / "shown-again.conf").write_text(drop_in)
+    drop_ins = {"shown-again.conf": _shown_again(), "venv-under-test.conf": _venv_under_test()}
+    for name, drop_in in drop_ins.items():
+        if drop_in:
+            (setup / "esc-bridge.service.d").mkdir(exist_ok=True)
+            (setup / "esc-bridge.service.d" / name).write_text(drop_in)
     env = {**_environment("uml-systemd"), "ESC_BRIDGE_SETUP": str(setup)}
     return _boot_uml("uml-systemd", SYSTEMD_INIT, env, workdir, timeout_s=SYSTEMD_BOOT_TIMEOUT_S)
+
+
+def _venv_under_test() -> str:
+    """A drop-in for the unit: its ExecStart run from the venv these tests run in, where that
+    is not the checkout's ``.venv`` the unit names as ``/opt/esc-bridge/.venv`` ('' when it is).
+    CI's Python 3.10 half runs from ``.venv310``: the service must run the Python under test,
+    not whatever ``.venv`` holds (or nothing, where there is none)."""
+    venv = Path(sys.prefix).resolve()
+    if venv == (ROOT / ".venv").resolve():
+        return ""
+    exec_start = next(
+        line for line in UNIT.read_text().splitlines() if line.startswith("ExecStart=")
+    )
+    # Inside the checkout, by the path the guest installs it at (/opt/esc-bridge).
+    installed = f"{INSTALLED_AT}/{venv.relative_to(ROOT)}" if venv.is_relative_to(ROOT) else venv
+    return f"[Service]\nExecStart=\n{exec_start.replace(f'{INSTALLED_AT}/.venv', str(installed))}\n"
 
 
 def _shown_again() -> str:
