@@ -199,7 +199,7 @@ def fly(family: str, pwm: list[int]) -> dict[str, Any]:
 
 def _commanded_since(dump: guest.Candump, read: Reader, since: float, pwm: list[int]) -> bool:
     """Whether candump saw a command of ``pwm``'s outputs after ``since``."""
-    want = {i: (p - 1000) / 1000 for i, p in enumerate(pwm)}
+    want = commanded(pwm)
     for line in dump.lines():
         if not guest.CANDUMP_LINE.match(line):
             continue  # candump's own notes (its drops)
@@ -310,7 +310,14 @@ FAMILIES = {
     ),
     "dronecan": Family(f'[output]\nprotocol = "dronecan"\nrate_hz = 50\n{OUTPUT}', dronecan_reader),
 }
-WANT = {i: (p - 1000) / 1000 for i, p in enumerate(PWM)}
+
+
+def commanded(pwm: list[int]) -> Commands:
+    """The command fractions the passthrough mixer makes of ``pwm`` (1000..2000 µs)."""
+    return {i: (p - 1000) / 1000 for i, p in enumerate(pwm)}
+
+
+WANT = commanded(PWM)
 SAFE = dict.fromkeys(range(4), 0.0)
 
 # linux/can.h, and how net/can/af_can.c's can_rcv_list_find files a filter.
