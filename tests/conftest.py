@@ -99,6 +99,7 @@ class Observer:
     def __init__(self, port: int) -> None:
         self.bus = multicast_bus(port)
         self.frames: list[tuple[float, can.Message]] = []
+        self.garbage = 0  # datagrams that were not CAN frames
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
@@ -106,7 +107,13 @@ class Observer:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            msg = self.bus.recv(0.05)
+            try:
+                msg = self.bus.recv(0.05)
+            except can.CanOperationError:
+                # A datagram that is not python-can's (another test's traffic to a port of
+                # the same number): counted and dropped, the observer goes on.
+                self.garbage += 1
+                continue
             if msg is not None:
                 # The kernel's receive time (udp_multicast reads SO_TIMESTAMPNS) on the
                 # monotonic clock: when the bridge sent the frame, however late this thread
@@ -119,6 +126,11 @@ class Observer:
     def since(self, t: float) -> list[can.Message]:
         with self._lock:
             return [m for ts, m in self.frames if ts >= t]
+
+    def stamps(self, start: float, end: float) -> list[float]:
+        """The receive times of the frames from ``start`` until ``end`` (monotonic)."""
+        with self._lock:
+            return [ts for ts, _ in self.frames if start <= ts < end]
 
     def wait_for(
         self, predicate: Callable[[can.Message], bool], timeout_s: float, after: float = 0.0
@@ -370,6 +382,7 @@ def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Dae
     yield start
     for daemon in started:
         daemon.stop()
+        print(f"--- {' '.join(daemon.args[1:])}\n{daemon.output}")  # shown when a test fails
 
 
 def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop: Any) -> None:
@@ -404,6 +417,7 @@ def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop
             if last_ns:
                 largest_gap_ns = max(largest_gap_ns, now - last_ns)
             last_ns = now
+            control[5] += 1
         control[3] = largest_gap_ns // 1000
         next_ns += control[4]  # the period, which the test may change
         delay = next_ns - time.monotonic_ns()
@@ -419,9 +433,12 @@ class RealtimeAutopilot:
     bridge while it streams is the bridge's fault."""
 
     def __init__(self, port: int, pwm: list[int], rate_hz: float = 200.0) -> None:
+        """Returns once the first outputs are sent: a spawned interpreter took seconds to get
+        there beside the whole suite, and a test timing the stream must not time its start."""
         ctx = multiprocessing.get_context("spawn")
-        # armed, heartbeats on, outputs on, the largest gap between two sends (µs), period (ns)
-        self._control = ctx.RawArray("q", [1, 1, 1, 0, round(1e9 / rate_hz)])
+        # armed, heartbeats on, outputs on, the largest gap between two sends (µs), period (ns),
+        # outputs sent
+        self._control = ctx.RawArray("q", [1, 1, 1, 0, round(1e9 / rate_hz), 0])
         self._stop = ctx.Event()
         self._process = ctx.Process(
             target=_stream_outputs,
@@ -430,6 +447,16 @@ class RealtimeAutopilot:
             daemon=True,
         )
         self._process.start()
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not self.outputs_sent:
+            if not self._process.is_alive() or time.monotonic() > deadline:
+                self.close()
+                raise AssertionError("the real-time autopilot sent nothing")
+            time.sleep(0.01)
+
+    @property
+    def outputs_sent(self) -> int:
+        return int(self._control[5])
 
     @property
     def largest_gap_ms(self) -> float:

@@ -285,9 +285,10 @@ def test_a_stream_too_slow_never_starts_the_motors_and_one_slowing_in_flight_kee
     # Its frames are on the bus (at load 8 the first came 2.25 s after the loop's start).
     expect_throttles(observer, SAFE, STARTUP_TIMEOUT_S)
     pilot = rt_autopilot([1500] * 4, rate_hz=8)
-    started = time.monotonic()
+    started, sent_before = time.monotonic(), pilot.outputs_sent
     time.sleep(2.5)
     slow = throttles_since(observer, started)
+    assert pilot.outputs_sent - sent_before >= 18  # the slow stream flowed all along
     assert len(slow) > 100 and all(t == SAFE for _, t in slow)
     pilot.rate(200)
     expect_throttles(observer, HOVER, 2.0, after=time.monotonic())

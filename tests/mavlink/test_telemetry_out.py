@@ -265,8 +265,10 @@ def test_stamps_on_the_autopilots_boot_clock_once_it_tells_it(make_bridge: MakeB
         time.sleep(0.1)
         since = autopilot.count()
         assert autopilot.wait_for("ESC_STATUS", since=since).time_usec > 10**15
-        autopilot.send(encoder.system_time_encode(0, boot_ms))
+        # Timed before the send: the bridge cannot read it earlier. (Timed after it, a test
+        # thread preempted between the two once made the bridge's stamp look 3 ms ahead.)
         sent = time.monotonic()
+        autopilot.send(encoder.system_time_encode(0, boot_ms))
         since = autopilot.count()
         info = autopilot.wait_for("ESC_INFO", lambda m: m.time_usec < 10**12, since)
         status = autopilot.wait_for("ESC_STATUS", lambda m: m.time_usec < 10**12, since)

@@ -39,9 +39,15 @@ SAFE = (0, 0, 0, 0)
 INPUT_TIMEOUT_MS = 400  # the default 100 ms, widened for a loaded test machine
 
 
+FRAME_TIMEOUT_S = 5.0
+
+
 def _throttles(observer: can.BusABC, count: int) -> list[tuple[int, ...]]:
+    # The throttles of the next ``count`` frames. The loop is a thread of this test's process,
+    # which beside the whole suite and a soak once went over a second without running it: the
+    # values are the test, not the time they take.
     seen: list[tuple[int, ...]] = []
-    while len(seen) < count and (msg := observer.recv(1.0)) is not None:
+    while len(seen) < count and (msg := observer.recv(FRAME_TIMEOUT_S)) is not None:
         frame = codec.decode(msg)
         assert frame is not None and isinstance(frame.message, records.RawCommand12b)
         seen.append(frame.message.throttles)

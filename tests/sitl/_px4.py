@@ -23,7 +23,15 @@ from typing import Any
 from conftest import ROOT
 
 from . import _udp_tap
-from .conftest import Process, SitlAutopilot, claimed_instance, dialect, port_free, wait_until
+from .conftest import (
+    Process,
+    SitlAutopilot,
+    claimed_instance,
+    dialect,
+    make_realtime,
+    port_free,
+    wait_until,
+)
 
 
 class UdpTap:
@@ -53,6 +61,12 @@ class UdpTap:
         if not ready.wait(20):
             self.close()
             raise AssertionError(f"the UDP tap on port {listen_port} did not start in 20 s")
+        # The wire to the autopilot, real-time as ArduCopter's tap is. At normal priority,
+        # beside the whole suite, a tap can sit on PX4's outputs past input_timeout_ms and stamp
+        # them fresh as it forwards them: the bridge's rightly safe frames then look like motor
+        # stops (seen: all-zero frames on two sides in the same 50 ms, input "fresh").
+        assert self._process.pid is not None
+        make_realtime(self._process.pid)
         self._parser: Any = dialect.MAVLink(None)
         self._parser.robust_parsing = True
         self._offset = 0
