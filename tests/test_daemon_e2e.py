@@ -94,6 +94,31 @@ def test_ckesc_throttle_sweep(
     assert daemon.stop() == 0
 
 
+def test_immediate_mode_follows_a_fast_input_at_twice_the_rate_at_most(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer, tmp_path: Path
+) -> None:
+    # An input flood (SERVO_OUTPUT_RAW as fast as a Python thread sends, some 1 000 a second)
+    # into a 100 Hz bridge in immediate mode: its frames go out on input, at most twice the
+    # rate, never closer than half a period (5 ms) to the last input's frame.
+    config = tmp_path / "bridge.toml"
+    config.write_text('[output]\nrate_hz = 100\nlatency = "immediate"\n')
+    daemon = start_daemon("--config", str(config))
+    autopilot.pwm = [1500] * 4
+    autopilot.armed = True
+    autopilot.start_stream(2000)
+    expect_throttles(observer, (1000,) * 4, STARTUP_TIMEOUT_S)
+    window_s = 2.0
+    start = time.monotonic()
+    time.sleep(window_s)
+    stamps = observer.stamps(start, start + window_s)
+    rate_hz = len(stamps) / window_s
+    assert 150 <= rate_hz <= 2 * 100 * 1.02, rate_hz  # on input, above the rate; capped at 2x
+    gaps = sorted(b - a for a, b in itertools.pairwise(stamps))
+    assert gaps[len(gaps) // 10] > 0.0045, gaps[:10]  # 5 ms apart, bar a late send's catch-up
+    print(f"input flood: {rate_hz:.0f} frames/s, gap p10 {gaps[len(gaps) // 10] * 1e3:.2f} ms")
+    assert daemon.stop() == 0
+
+
 @pytest.mark.parametrize(
     ("mode", "record", "value_of"),
     [

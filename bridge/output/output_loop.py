@@ -393,7 +393,8 @@ class OutputLoop:
         immediate = self._config.output.latency == "immediate"
         monotonic_ns, wait, sleep = time.monotonic_ns, select.select, time.sleep
         input_tick = False
-        last_ns = next_ns = self._last_ns = monotonic_ns()
+        next_ns = self._last_ns = monotonic_ns()
+        last_input_ns = next_ns - min_gap_ns  # the last tick an input started
         while True:
             delay_ns = next_ns - monotonic_ns()
             if not immediate:
@@ -422,8 +423,13 @@ class OutputLoop:
                 now = monotonic_ns()
                 if link_fd in ready and input_side.on_readable(now):
                     # Fresh input goes out now, or as soon as the frame-rate cap allows: never
-                    # within min_gap of the last frame, so an input flood cannot flood the bus.
-                    next_ns = min(next_ns, max(now, last_ns + min_gap_ns))
+                    # within min_gap of the last input's frame, so an input flood cannot flood
+                    # the bus. A keep-alive just before it does not hold it back: keep-alives
+                    # fire only in the input's gaps (1.5 periods), so frames stay under twice
+                    # the rate all the same, and an input a little early after one (input at
+                    # half the rate: the keep-alive fires just min_gap before the next input)
+                    # is not made to wait for the cap.
+                    next_ns = min(next_ns, max(now, last_input_ns + min_gap_ns))
                     input_tick = True
                 main_gone = not self._exchange_with_main(now)
                 if now < next_ns and not main_gone:
@@ -432,11 +438,11 @@ class OutputLoop:
                 now = monotonic_ns()
             if not tick(now, next_ns):
                 return
-            last_ns = now
             if input_tick:
                 # Re-phased to the input: the fixed tick becomes a keep-alive that fires only
                 # when the next input is late, so it never races an input arriving on time.
                 input_tick = False
+                last_input_ns = now
                 counters[immediate_i] += 1
                 next_ns = now + keepalive_ns
                 continue
