@@ -220,7 +220,8 @@ class EscDriver(Protocol):
     """What the driver sends, in a word or two for the start-up log line."""
 
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        """Frames for ``tick`` commanding ``fractions`` (one per mixer output, -1..1)."""
+        """Frames for ``tick`` commanding ``fractions`` (one per mixer output, -1..1). They
+        are the driver's until its next call, which may reuse them: send them before then."""
         ...
 
     def safe_frames(self, tick: int) -> list[can.Message]:

@@ -14,6 +14,13 @@ from bridge.escs import uavcan_v0
 from bridge.escs.ckesc import codec, records
 from bridge.escs.drivers import unit_fraction
 
+# The tail byte (its transfer ID) is the last of the 8 data bytes of 12b and 14b frames alike.
+TAIL_BYTE_INDEX = 7
+_TRANSFER_TYPES = {
+    "12b": records.TYPE_RAW_COMMAND_12B,
+    "14b": records.TYPE_RAW_COMMAND_14B,
+}
+
 
 class CkescDriver:
     """RawCommand_12b (one frame per group of four channels), 14b or 10b throttle frames."""
@@ -33,32 +40,40 @@ class CkescDriver:
         self._groups = sorted({index // 4 + 1 for index in self._channel_index})
         self._transfer_ids = uavcan_v0.TransferIds()
         self._zeros = [0.0] * len(self._channel_index)
-        self._fractions: Sequence[float] = ()  # whose throttles are in self._throttles
+        self._fractions: Sequence[float] = ()  # whose throttles self._frames carry
+        self._frames: list[can.Message] = []
+        # The type whose transfer IDs the tail bytes count (10b frames have no tail byte).
+        self._transfer_type = _TRANSFER_TYPES.get(command)
 
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        # The throttles change with the input, not the tick: a tick that repeats the last
-        # input only encodes (its transfer IDs are new). NaN never equals itself: recomputed.
+        # The frames change with the input, not the tick: a tick that repeats the last input
+        # only writes its new transfer IDs into their tail bytes, in place (the frames are sent
+        # before the next call). NaN never equals itself: encoded again.
         if fractions != self._fractions:
-            self._fractions = ()  # until every throttle is written: a raise leaves none cached
+            self._fractions = ()  # until every frame is made: a raise leaves none cached
             throttles = self._throttles
             full_scale = self._full_scale
             for index, fraction in zip(self._channel_index, fractions, strict=True):
                 throttles[index] = int(unit_fraction(fraction) * full_scale + 0.5)
+            self._frames = self._encode(throttles)
             self._fractions = list(fractions)
-        throttles = self._throttles
-        if self._command == "12b":
+        frames = self._frames
+        transfer_type = self._transfer_type
+        if transfer_type is not None:
             next_id = self._transfer_ids.next
+            for frame in frames:
+                frame.data[TAIL_BYTE_INDEX] = uavcan_v0.tail_byte(next_id(transfer_type))
+        return frames
+
+    def _encode(self, throttles: list[int]) -> list[can.Message]:
+        """The frames carrying ``throttles``, their transfer IDs still to be written."""
+        if self._command == "12b":
             return [
-                codec.encode_raw_12b(
-                    group,
-                    throttles[4 * group - 4 : 4 * group],
-                    next_id(records.TYPE_RAW_COMMAND_12B),
-                )
+                codec.encode_raw_12b(group, throttles[4 * group - 4 : 4 * group], 0)
                 for group in self._groups
             ]
         if self._command == "14b":
-            tid = self._transfer_ids.next(records.TYPE_RAW_COMMAND_14B)
-            return [codec.encode_raw_14b(throttles[:4], tid)]
+            return [codec.encode_raw_14b(throttles[:4], 0)]
         return [codec.encode_raw_10b(throttles[:6])]
 
     def safe_frames(self, tick: int) -> list[can.Message]:
