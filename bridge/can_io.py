@@ -39,6 +39,11 @@ SHAREABLE_INTERFACES = frozenset({"socketcan", "udp_multicast"})
 # queue is full (the ESCs are not acknowledging, or the bus is saturated).
 TRANSIENT_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
 
+# Interfaces whose handles filter in the kernel (CAN_RAW_FILTER): a frame no filter passes is
+# never queued. Elsewhere python-can filters in ``recv``, one frame a call: ``recv(0)`` then
+# returns None for a refused frame as for an empty queue.
+KERNEL_FILTERING_INTERFACES = frozenset({"socketcan"})
+
 Receive = Literal["all", "telemetry", "none"]
 """What a bus handle receives: every frame, the frames its filters pass, or nothing."""
 

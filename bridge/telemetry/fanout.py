@@ -15,7 +15,12 @@ from typing import Any
 import can
 from can.typechecking import CanFilter
 
-from bridge.can_io import apply_filters, enlarge_receive_buffer, open_bus
+from bridge.can_io import (
+    KERNEL_FILTERING_INTERFACES,
+    apply_filters,
+    enlarge_receive_buffer,
+    open_bus,
+)
 from bridge.config import BridgeConfig
 from bridge.errors import ValueRangeError
 from bridge.escs import registry
@@ -73,6 +78,7 @@ class Fanout:
         self._recorder = recorder
         self._states = states
         self._own_bus: can.BusABC | None = None
+        self._kernel_filters = config.can.interface in KERNEL_FILTERING_INTERFACES
         self.reader: CanReader | None = None
         self.mavlink = MavlinkTelemetry(config.mavlink, link, table)
         self.zenoh: ZenohOut | None = None
@@ -109,7 +115,7 @@ class Fanout:
                 learn_node_ids, self._own_bus if self._shared_bus is None else self._shared_bus()
             )
             filters = self._filters()
-            if self._own_bus is not None and filters:
+            if self._own_bus is not None and filters and self._kernel_filters:
                 apply_filters(self._own_bus, filters)
         if self._own_bus is not None:
             log.debug(
@@ -117,7 +123,13 @@ class Fanout:
                 "every frame" if filters is None else f"what {len(filters)} filters pass",
             )
         self.reader = CanReader(
-            bus, self.table, self._family, self._recorder, self._states, reopen=reopen
+            bus,
+            self.table,
+            self._family,
+            self._recorder,
+            self._states,
+            reopen=reopen,
+            filters=None if self._own_bus is None or self._kernel_filters else filters,
         )
         self.reader.start()
         self.mavlink.start()
@@ -131,7 +143,8 @@ class Fanout:
             LinkError: the bus cannot be opened.
         """
         config = self._config
-        if filters is None:
+        if filters is None or (filters and not self._kernel_filters):
+            # Without kernel filters the reader filters itself (CanReader's ``filters``).
             self._own_bus = open_bus(config.can, config.bitrate, explain=explain)
         else:
             self._own_bus = open_bus(
