@@ -15,15 +15,21 @@ key                        payload (JSON, ``application/json``)         rate cap
 
 Every payload is encoded by its record in :mod:`bridge.telemetry.payload`, and carries
 ``time_unix_ms`` (wall clock, when published) unless its source already put one in. A
-source that returns ``None`` (nothing yet) is skipped. A queryable on ``<prefix>/**`` answers
-with the latest published value of each matching key, and a liveliness token on
-``<prefix>/alive`` exists while the bridge has a session.
+source that returns ``None`` (nothing yet) is skipped. A sample is made, encoded and sent only
+while a subscriber matches its key (Zenoh's matching status): nobody listening costs nothing. A
+queryable on ``<prefix>/**`` answers with the current value of each matching key, made when
+asked, and a liveliness token on ``<prefix>/alive`` exists while the bridge has a session.
 
 Zenoh never holds up the bridge: :meth:`ZenohOut.start` returns at once, one daemon thread
 opens the session (retrying with jittered, capped backoff when it cannot), declares the
-publishers and publishes on a fixed schedule. Publishers drop under congestion rather than
-block; samples due while no session is open are counted as dropped. :meth:`ZenohOut.close`
-returns within :data:`CLOSE_TIMEOUT_S` whatever the network does.
+publishers and publishes on a fixed schedule. Queries wait in a small ring channel for a second
+thread of ours, which ends when the queryable is undeclared and which closing waits for. (With a
+Python callback, zenoh would answer on a thread of its own making that nobody waits for; one
+still inside zenoh's code as the interpreter exits makes glibc abort the process, "FATAL:
+exception not rethrown", and systemd would see a crash on every such stop.) Publishers drop
+under congestion rather than block; samples due while no session is open are counted as
+dropped. :meth:`ZenohOut.close` returns within :data:`CLOSE_TIMEOUT_S` whatever the network
+does.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ import random
 import re
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import Any
@@ -53,7 +59,7 @@ from bridge.telemetry.payload import (
     HealthPayload,
     Payload,
 )
-from bridge.telemetry.state import EscTable
+from bridge.telemetry.state import EscSnapshot, EscTable
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +68,7 @@ BACKOFF_JITTER = 0.2  # each wait is scaled by a random factor in 1 ± this
 WARN_INTERVAL_S = 60.0  # after the first warning, repeat a persisting problem at most this often
 PEERS_POLL_S = 1.0  # how often the connected routers and peers are counted
 CLOSE_TIMEOUT_S = 1.5  # close() waits this long for the thread to close the session
+QUERY_QUEUE = 16  # queries waiting to be answered; beyond this the oldest is dropped
 BROKEN_AFTER_ERRORS = 50  # consecutive failed puts after which the session is reopened
 ENCODING = zenoh.Encoding.APPLICATION_JSON
 PRIORITY = zenoh.Priority.DATA_LOW  # telemetry yields to anything else on the vehicle's network
@@ -220,7 +227,8 @@ class _Live:
     def __init__(self, session: zenoh.Session) -> None:
         self.session = session
         self.publishers: dict[str, zenoh.Publisher] = {}
-        self.queryable: zenoh.Queryable[None] | None = None
+        self.queryable: zenoh.Queryable[zenoh.handlers.Handler[zenoh.Query]] | None = None
+        self.answering: threading.Thread | None = None  # answers the queryable's queries
         self.token: zenoh.LivelinessToken | None = None
         self.failed_puts = 0  # consecutive
 
@@ -260,8 +268,16 @@ class ZenohOut:
         self.alive_key = self._key("alive")
         self._stats = ZenohStats()
         self._stats_lock = threading.Lock()
-        self._latest: dict[str, bytes] = {}  # key -> last published payload, for the queryable
-        self._latest_lock = threading.Lock()
+        # The ESC keys' motor index (0-based) and record, by key.
+        self._esc_records: dict[str, tuple[int, Callable[[EscSnapshot], Payload]]] = {
+            **{key: (i, EscTelemetryPayload.of) for i, key in enumerate(self._telemetry_keys)},
+            **{key: (i, EscInfoPayload.of) for i, key in enumerate(self._info_keys)},
+        }
+        self._sourced: dict[str, Callable[[], Payload | None]] = {
+            self._health_key: sources.health,
+            self._input_key: sources.actuators_input,
+            self._output_key: sources.actuators_output,
+        }
         self._live: _Live | None = None  # touched by the thread only
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -434,13 +450,18 @@ class ZenohOut:
                     priority=PRIORITY,
                     express=False,
                 )
+            # A ring channel never holds up zenoh's own threads when answering falls behind.
             live.queryable = session.declare_queryable(
-                self._key("**"), self._on_query, complete=True
+                self._key("**"), zenoh.handlers.RingChannel(QUERY_QUEUE), complete=True
             )
             live.token = session.liveliness().declare_token(self.alive_key)
         except BaseException:
             session.close()  # type: ignore[no-untyped-call]
             raise
+        live.answering = threading.Thread(
+            target=self._answer_queries, args=(live.queryable,), name="zenoh-queries", daemon=True
+        )
+        live.answering.start()
         self._live = live
         with self._stats_lock:
             self._stats.session_up = True
@@ -456,8 +477,6 @@ class ZenohOut:
         if live is None:
             return
         self._lost_peers = self._lost_peers or self._had_peers
-        with self._latest_lock:
-            self._latest.clear()
         for name, entity in (("liveliness token", live.token), ("queryable", live.queryable)):
             if entity is None:
                 continue
@@ -465,6 +484,10 @@ class ZenohOut:
                 entity.undeclare()  # type: ignore[no-untyped-call]
             except zenoh.ZError as exc:
                 log.debug("Zenoh: undeclaring the %s failed: %s", name, exc)
+        if live.answering is not None:
+            live.answering.join(CLOSE_TIMEOUT_S)  # it ends once the queryable is undeclared
+            if live.answering.is_alive():
+                log.warning("Zenoh: the thread answering queries did not end")
         try:
             live.session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError as exc:
@@ -479,22 +502,50 @@ class ZenohOut:
         health: _Every,
         actuators: _Every,
     ) -> None:
-        due_telemetry, due_status, due_info = telemetry.due(now), status.due(now), info.due(now)
-        if due_telemetry or due_status or due_info:
-            snapshots = self._sources.escs.snapshot(time.monotonic_ns())
-            if due_telemetry:
-                for key, snap in zip(self._telemetry_keys, snapshots, strict=True):
-                    self._publish(key, EscTelemetryPayload.of(snap))
-            if due_info:
-                for key, snap in zip(self._info_keys, snapshots, strict=True):
-                    self._publish(key, EscInfoPayload.of(snap))
-            if due_status:
-                self._publish(self._status_key, EscStatusPayload.of(snapshots, _now_ms()))
+        due: list[str] = []
+        if telemetry.due(now):
+            due += self._telemetry_keys
+        if info.due(now):
+            due += self._info_keys
+        if status.due(now):
+            due.append(self._status_key)
         if health.due(now):
-            self._publish(self._health_key, self._call(self._sources.health))
+            due.append(self._health_key)
         if actuators.due(now):
-            self._publish(self._input_key, self._call(self._sources.actuators_input))
-            self._publish(self._output_key, self._call(self._sources.actuators_output))
+            due += (self._input_key, self._output_key)
+        live = self._live
+        if live is None:
+            self._count(dropped=len(due))
+            return
+        # Making and encoding a record is most of the cost of a sample, and nobody may be
+        # listening (a vehicle whose fleet is not watched): only what a subscriber matches is
+        # made, encoded and sent.
+        wanted = [key for key in due if _has_subscribers(live.publishers[key])]
+        for key, record in self._records(wanted):
+            self._publish(live, key, record)
+
+    def _records(self, keys: Sequence[str]) -> list[tuple[str, Payload]]:
+        """The current record of each of ``keys``, stamped now; a source with nothing yet (or
+        failing) gives none. The ESCs' state is read once for all."""
+        snapshots: Sequence[EscSnapshot] = ()
+        if any(key in self._esc_records or key == self._status_key for key in keys):
+            snapshots = self._sources.escs.snapshot(time.monotonic_ns())
+        now_ms = _now_ms()
+        records: list[tuple[str, Payload]] = []
+        for key in keys:
+            record: Payload | None
+            esc = self._esc_records.get(key)
+            if esc is not None:
+                record = esc[1](snapshots[esc[0]])
+            elif key == self._status_key:
+                record = EscStatusPayload.of(snapshots, now_ms)
+            else:
+                record = self._call(self._sourced[key])
+            if record is not None:
+                records.append(
+                    (key, record if record.time_unix_ms is not None else record.stamped(now_ms))
+                )
+        return records
 
     def _call(self, source: Callable[[], Payload | None]) -> Payload | None:
         try:
@@ -505,21 +556,9 @@ class ZenohOut:
                 log.exception("Zenoh: telemetry source %r failed", source)
             return None
 
-    def _publish(self, key: str, value: Payload | None) -> None:
-        if value is None:
-            return
-        if value.time_unix_ms is None:
-            value = value.stamped(_now_ms())
-        try:
-            payload = value.encode()
-        except (TypeError, ValueError) as exc:
-            self._count(errors=1)
-            if self._error_log.ready():
-                log.error("Zenoh: %s is not JSON (%s): %r", key, exc, value)
-            return
-        live = self._live
-        if live is None:
-            self._count(dropped=1)
+    def _publish(self, live: _Live, key: str, record: Payload) -> None:
+        payload = self._encode(key, record)
+        if payload is None:
             return
         try:
             live.publishers[key].put(payload)
@@ -531,23 +570,51 @@ class ZenohOut:
             return
         live.failed_puts = 0
         self._count(published=1)
-        with self._latest_lock:
-            self._latest[key] = payload
 
-    def _on_query(self, query: zenoh.Query) -> None:
-        # Runs on a Zenoh thread: answer from the cache, never wait on the publishing thread.
+    def _encode(self, key: str, value: Payload) -> bytes | None:
+        """``value``'s JSON, or None (counted, logged now and then) when it has none (NaN)."""
+        try:
+            return value.encode()
+        except (TypeError, ValueError) as exc:
+            self._count(errors=1)
+            if self._error_log.ready():
+                log.error("Zenoh: %s is not JSON (%s): %r", key, exc, value)
+            return None
+
+    def _answer_queries(
+        self, queryable: zenoh.Queryable[zenoh.handlers.Handler[zenoh.Query]]
+    ) -> None:
+        """The body of the thread answering queries: until the queryable is undeclared."""
+        for query in queryable:
+            try:
+                self._answer(query)
+            except Exception:  # a fault here must not end answering
+                self._count(errors=1)
+                if self._error_log.ready():
+                    log.exception("Zenoh: answering a query failed")
+
+    def _answer(self, query: zenoh.Query) -> None:
+        # The records are made from the sources (cheap, thread-safe), never waiting on the
+        # publishing thread.
         with query:
             selector = query.key_expr
-            with self._latest_lock:
-                latest = list(self._latest.items())
-            for key, payload in latest:
+            asked = [key for key in self.keys if selector.intersects(key)]
+            for key, record in self._records(asked):
                 try:
-                    if selector.intersects(key):
+                    payload = self._encode(key, record)
+                    if payload is not None:
                         query.reply(key, payload, encoding=ENCODING)
                 except zenoh.ZError as exc:
                     self._count(errors=1)
                     if self._error_log.ready():
                         log.warning("Zenoh: replying to %s failed: %s", selector, exc)
+
+
+def _has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches ``publisher``'s key. (zenoh's stub types
+    ``matching_status`` as a bool; it is a ``MatchingStatus``, whose ``matching`` says.)"""
+    status: Any = publisher.matching_status
+    return bool(status.matching)
 
 
 def _now_ms() -> int:
