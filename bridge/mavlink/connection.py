@@ -14,13 +14,12 @@ from __future__ import annotations
 import logging
 import random
 import select
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Final
-
-from pymavlink import mavutil
 
 from bridge.errors import LinkError
 from bridge.mavlink.endpoints import Endpoint
@@ -29,6 +28,30 @@ from bridge.mavlink.stats import Counters, OutputStats, log_sparsely
 __all__ = ["POLL_S", "Connection", "open_pymavlink", "wait_readable"]
 
 log = logging.getLogger(__name__)
+
+
+def _import_mavutil() -> Any:
+    """``pymavlink.mavutil``, loaded without numpy.
+
+    mavutil loads its log-expression helpers, and they load numpy where it is installed (on most
+    companion computers, for vision; here, for the plot extra) for quaternions the bridge never
+    uses, and numpy is most of what loading mavutil costs, at every start of the bridge. They
+    load it inside a ``try``, so numpy hidden while mavutil loads is numpy skipped. A process
+    that has numpy already keeps it, and mavutil gets its quaternions.
+    """
+    if "numpy" in sys.modules:
+        from pymavlink import mavutil
+    else:
+        sys.modules["numpy"] = None  # type: ignore[assignment]  # import numpy: ImportError
+        try:
+            from pymavlink import mavutil
+        finally:
+            if "numpy" in sys.modules and sys.modules["numpy"] is None:
+                del sys.modules["numpy"]
+    return mavutil
+
+
+mavutil: Any = _import_mavutil()
 
 POLL_S: Final = 0.1
 """Readers and writers wake at least this often to notice that the link is closing."""

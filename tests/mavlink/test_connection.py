@@ -7,6 +7,8 @@ from __future__ import annotations
 import os
 import select
 import socket
+import subprocess
+import sys
 import time
 
 import linkpeer
@@ -119,3 +121,33 @@ def test_a_failing_output_never_stops_the_autopilot_link_and_reconnects(
         assert time.monotonic() < deadline, "the output never connected"
     assert link.output_stats[0].reconnects == 1
     assert link.stats.reconnects == 0
+
+
+IMPORT_SCRIPT = """
+import sys
+{first}
+from bridge.mavlink.connection import mavutil
+conn = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+conn.close()
+print("numpy" in sys.modules, hasattr(sys.modules["pymavlink.mavextra"], "Quaternion"))
+"""
+
+
+@pytest.mark.parametrize(
+    ("first", "expected"),
+    [("", "False False"), ("import numpy", "True True")],
+    ids=["alone", "numpy-already-loaded"],
+)
+def test_mavutil_is_loaded_without_numpy_unless_a_process_has_it(first: str, expected: str) -> None:
+    """numpy (installed here by the plot extra) is left out of a process that has not loaded it:
+    most of mavutil's load time, for quaternions the bridge never uses. A process that loaded
+    numpy first keeps mavutil's quaternions."""
+    pytest.importorskip("numpy", reason="pip install -e '.[plot]' installs numpy")
+    done = subprocess.run(
+        [sys.executable, "-c", IMPORT_SCRIPT.format(first=first)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+    assert done.stdout.split() == expected.split()
