@@ -37,14 +37,17 @@ were really sent (within ``max_drift`` of how long they waited) and their age sh
   rises slowly, would judge every input old for a minute. A sample after a silence of more than
   ``_PAUSE_SILENCE_NS`` whose remote time moved on by less than half of it opens a check: when
   the next ``_PAUSE_CONFIRM_SAMPLES`` samples arrive in the rhythm the remote clock gives them
-  (remote and local time elapsed agree within a quarter, over at least ``_PAUSE_MIN_SPAN_NS``),
-  the autopilot runs again, and the estimate is re-seeded from their least offset (when that is
-  larger than the estimate by half the silence: else no clock stood still). A backlog released
-  by a frozen link or read late by a stalled process fails the check: it arrives faster than
-  its remote times advance. For ``_PAUSE_RETRY_NS`` after the first sample a failed check starts
-  again from the failing sample, since a SITL resumes unevenly (a burst, a late first interval);
-  a backlog keeps failing, and the rhythm after it carries the offset already held. Cost: the
-  first few inputs after a pause are judged old (safe values), ~20 ms at 200 Hz.
+  (over at least ``_PAUSE_MIN_SPAN_NS``, the remote time elapsed never more than a quarter
+  ahead of the local, and at least half of it), the autopilot runs again, and the estimate is
+  re-seeded from their least offset (when that is larger than the estimate by half the
+  silence: else no clock stood still). A backlog released by a frozen link or read late by a
+  stalled process fails the check: it arrives faster than its remote times advance. A sample
+  read late (local time ahead) is not held against the rhythm: on a loaded machine a reader
+  busy for a few ms is common, and a backlog never looks like that. For ``_PAUSE_RETRY_NS``
+  after the first sample a failed check starts again from the failing sample, since a SITL
+  resumes unevenly (a burst, a late first interval); a backlog keeps failing, and the rhythm
+  after it carries the offset already held. Cost: the first few inputs after a pause are
+  judged old (safe values), ~20 ms at 200 Hz.
 - A remote time of 0 or None (a sender that leaves the field empty): the receive time is all
   there is.
 - A remote time equal to the newest one: once, that is the same instant (SERVO_OUTPUT_RAW ports
@@ -235,14 +238,22 @@ class AutopilotClock:
         check[3] = min(check[3], sample_ns)
         check[4] += local_gap_ns
         remote_span, local_span = check[1], check[2]
-        if abs(remote_span - local_span) > _PAUSE_RATE_TOLERANCE * local_span + _PAUSE_SLACK_NS:
-            # Out of rhythm: a backlog (or no clock), its times running ahead of its arrival;
-            # or a SITL resuming unevenly. Early on, judge again from this sample: a backlog
-            # keeps failing, and the rhythm that follows it carries its true offset anyway.
+        if remote_span - local_span > _PAUSE_RATE_TOLERANCE * local_span + _PAUSE_SLACK_NS:
+            # Its times ran ahead of its arrival: a backlog, or a SITL catching up as it
+            # resumes. Early on, judge again from this sample: a backlog keeps failing, and the
+            # rhythm that follows it carries its true offset anyway.
             since_open = check[4]
             self._pause = [0, 0, 0, sample_ns, since_open] if since_open < _PAUSE_RETRY_NS else None
             return None
-        if check[0] < _PAUSE_CONFIRM_SAMPLES or local_span < _PAUSE_MIN_SPAN_NS:
+        # Arrival running ahead of the times is no backlog, only a sample read late (this
+        # process, or the link, busy for a few ms) or a slow clock: never held against the
+        # rhythm, or one late read on a loaded machine would cost a whole check again. A clock
+        # at under half our rate does not run yet (a late read, diluted by more samples, does).
+        if (
+            check[0] < _PAUSE_CONFIRM_SAMPLES
+            or local_span < _PAUSE_MIN_SPAN_NS
+            or remote_span < _MIN_RATE * local_span
+        ):
             return None
         self._pause = None
         if check[3] - current_ns < _PAUSE_SILENCE_NS // 2:

@@ -452,3 +452,42 @@ def test_a_sitl_that_resumes_unevenly_runs_again_within_a_few_inputs(shape: str)
     ages_ms = [(at - clock.produced_ns(us, at)) / MS for us, at in resumed]
     assert all(age < 2 for age in ages_ms[-20:]), ages_ms
     assert clock.reseeds == 1
+
+
+@pytest.mark.parametrize("late_ms", [4, 6, 9])
+def test_a_sitl_resuming_read_late_now_and_then_runs_again_within_a_few_inputs(
+    late_ms: int,
+) -> None:
+    """ArduCopter's resume (a burst, then its 200 Hz rhythm) read by a busy process: every
+    third input read ``late_ms`` late, the next one read with it. A late read is no backlog.
+    Held against the rhythm, it started the check again: 6 ms late, fresh from the sixth input;
+    9 ms late, never within these 40."""
+    period_ns = 5 * MS
+    clock = AutopilotClock(32)
+    remote_us = 60_000_000
+    sent = LOCAL_START_NS
+    for _ in range(400):  # 2 s at 200 Hz
+        remote_us += 5000
+        sent += period_ns
+        clock.produced_ns(remote_us, sent + 300_000)
+    sent += S  # stopped for 1 s, its clock with it
+    burst = []
+    for _ in range(20):
+        remote_us += 5000
+        sent += period_ns // 20
+        burst.append((remote_us, sent + 300_000))
+    for us, at in burst:
+        clock.produced_ns(us, at)
+    read = sent
+    ages_ms = []
+    for k in range(40):  # its rhythm, read late now and then
+        remote_us += 5000
+        sent += period_ns
+        arrived = sent + 300_000
+        read = max(arrived + (late_ms * MS if k % 3 == 0 else 0), read)
+        ages_ms.append((read - clock.produced_ns(remote_us, read)) / MS)
+    first_fresh = next(k for k, age in enumerate(ages_ms) if age < 20)
+    # The check needs 4 inputs over 15 ms: fresh from the fourth input of the rhythm on.
+    assert first_fresh <= 4, ages_ms[:12]
+    assert all(age < late_ms + 2 for age in ages_ms[first_fresh:]), ages_ms
+    assert clock.reseeds == 1
