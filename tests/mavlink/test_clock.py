@@ -418,20 +418,26 @@ def test_a_frozen_link_that_releases_its_backlog_faster_than_sent_is_not_a_pause
     assert clock.reseeds == 0
 
 
+def clock_after_a_pause() -> tuple[AutopilotClock, int, int]:
+    """A clock that followed 2 s of a 200 Hz stream whose sender then stopped for 1 s, its clock
+    with it; and the sender's last remote time (µs) and send time (local ns)."""
+    clock = AutopilotClock(32)
+    remote_us = 60_000_000
+    sent = LOCAL_START_NS
+    for _ in range(400):
+        remote_us += 5000
+        sent += 5 * MS
+        clock.produced_ns(remote_us, sent + 300_000)
+    return clock, remote_us, sent + S
+
+
 @pytest.mark.parametrize("shape", ["burst", "jitter"])
 def test_a_sitl_that_resumes_unevenly_runs_again_within_a_few_inputs(shape: str) -> None:
     """SIGCONT of a real SITL: ArduCopter first sends ~20 outputs within 5 ms, its clock running
     0.1 s ahead, then its 200 Hz rhythm; PX4's first interval was 15 ms for 8 ms of its clock.
     Either ended the pause check, and every input after it looked ~0.9 s old until landing."""
     period_ns = 5 * MS
-    clock = AutopilotClock(32)
-    remote_us = 60_000_000
-    read = LOCAL_START_NS
-    for _ in range(400):  # 2 s at 200 Hz
-        remote_us += 5000
-        read += period_ns
-        clock.produced_ns(remote_us, read + 300_000)
-    read += S  # stopped for 1 s, its clock with it
+    clock, remote_us, read = clock_after_a_pause()
     resumed = []
     if shape == "burst":
         for _ in range(20):
@@ -463,14 +469,7 @@ def test_a_sitl_resuming_read_late_now_and_then_runs_again_within_a_few_inputs(
     Held against the rhythm, it started the check again: 6 ms late, fresh from the sixth input;
     9 ms late, never within these 40."""
     period_ns = 5 * MS
-    clock = AutopilotClock(32)
-    remote_us = 60_000_000
-    sent = LOCAL_START_NS
-    for _ in range(400):  # 2 s at 200 Hz
-        remote_us += 5000
-        sent += period_ns
-        clock.produced_ns(remote_us, sent + 300_000)
-    sent += S  # stopped for 1 s, its clock with it
+    clock, remote_us, sent = clock_after_a_pause()
     burst = []
     for _ in range(20):
         remote_us += 5000
