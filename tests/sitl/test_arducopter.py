@@ -367,6 +367,17 @@ def streaming(tap: MavTap, link: int, since: float, min_messages: int = 50) -> b
     return rec is not None and sum(1 for s in rec.servo if s.t >= since) >= min_messages
 
 
+def heartbeat_granted(tap: MavTap, link: int, window_s: float = 0.5) -> bool:
+    """Whether the autopilot's HEARTBEAT reaches ``link`` at about the HEARTBEAT_HZ its bridge
+    asks for (four in five of them), over the newest ``window_s`` the tap logged."""
+    rec = tap.records().get(link)
+    if rec is None or not rec.heartbeats:
+        return False
+    newest = rec.heartbeats[-1][0]
+    recent = sum(1 for t, _ in rec.heartbeats if t > newest - window_s)
+    return recent >= 0.8 * HEARTBEAT_HZ * window_s
+
+
 def first_spinning(rig: Rig, since: float) -> float | None:
     """When the first command frame with some motor non-zero since ``since`` was sent (as
     decoded so far)."""
@@ -522,6 +533,17 @@ def fly(flight: Flight, tap: MavTap) -> None:
             f"SERVO_OUTPUT_RAW reaching the {rig.name} bridge",
         )
     flight.events["streaming"] = time.monotonic()
+    # The bridges learn the arming from HEARTBEAT alone, and ask for it at HEARTBEAT_HZ only
+    # after the outputs' rate (one request a second): the motor test is timed against that rate,
+    # so it starts once each link has it. (In one run's two flights it was granted under a
+    # second before the wait above ended; a motor test started before it would wait up to
+    # ArduCopter's default HEARTBEAT period: the likely cause, not shown, of a 416 ms start in CI.)
+    for rig in flight.rigs:
+        wait_until(
+            lambda rig=rig: heartbeat_granted(tap, rig.link),  # type: ignore[misc]
+            20,
+            f"HEARTBEAT at {HEARTBEAT_HZ} Hz reaching the {rig.name} bridge",
+        )
 
     # 1. While the autopilot boots (disarmed, on the ground, the EKF not ready to arm yet):
     # ArduCopter's own motor test, cut short by killing the autopilot. It is asked for 30 s:
