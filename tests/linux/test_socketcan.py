@@ -205,7 +205,7 @@ def _commanded_since(dump: guest.Candump, read: Reader, since: float, pwm: list[
         if not guest.CANDUMP_LINE.match(line):
             continue  # candump's own notes (its drops)
         t, msg = guest.candump_message(line)
-        commands = read(msg) if t >= since else None
+        commands = command_of(read, msg) if t >= since else None
         if commands is not None and same(commands, want):
             return True
     return False
@@ -218,6 +218,13 @@ Commands = dict[int, float]
 """The command fractions (0..1) a frame carries, by ESC (0-based, motor order)."""
 
 Reader = Callable[[can.Message], Commands | None]
+
+
+def command_of(read: Reader, msg: can.Message) -> Commands | None:
+    """What ``msg`` commands, None for a frame of the flood: its random IDs take a family's
+    command ID now and then (CKESC's RawCommand, an FT command of ESC 235), and its data then
+    decodes as a command or fails to (8 bytes where FT's frame has 6)."""
+    return None if msg.data == FLOOD_BYTES else read(msg)
 
 
 @dataclass(frozen=True)
@@ -440,13 +447,7 @@ def flight(request: pytest.FixtureRequest, linux: Kernel) -> Iterator[Flight]:
     result = linux.call(fly, family=request.param, pwm=PWM)
     read = family.read()
     frames = [guest.candump_message(line) for line in result["frames"]]
-    # The flood's random IDs take a family's command ID now and then (CKESC's RawCommand from
-    # any node): its frames, told by their data, are no command.
-    commands = [
-        (t, decoded)
-        for t, msg in frames
-        if msg.data != FLOOD_BYTES and (decoded := read(msg)) is not None
-    ]
+    commands = [(t, decoded) for t, msg in frames if (decoded := command_of(read, msg)) is not None]
     yield Flight(request.param, family, result, frames, commands)
 
 
@@ -528,7 +529,7 @@ def test_the_kernel_holds_exactly_the_readers_filters(flight: Flight) -> None:
     assert len({row["owner"] for row in loop_rows}) <= 1, held
     assert all(row["list"] in ("eff", "sff", "err") for row in loop_rows), loop_rows
     read = flight.family.read()
-    sent = [msg for _, msg in flight.frames if read(msg) is not None]
+    sent = [msg for _, msg in flight.frames if command_of(read, msg) is not None]
     assert sent, "no command on the bus"
     fil = flight.readers_filters("with_bridge")
     assert not [msg for msg in sent if any(passes(r, msg) for r in fil)]
