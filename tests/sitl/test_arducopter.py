@@ -850,6 +850,28 @@ def first_test_input(rig: Rig, test: MotorTest) -> tuple[ServoOutput, int]:
 # The checks
 
 
+def lag_of(rig: Rig, command: Command) -> str:
+    """Which output a command off the newest carries, and the gap before its frame: a gap says
+    the bridge's loop was held up between reading and sending, none that it read late."""
+    newest = rig.newest_index(command.t)
+    carried = next(
+        (
+            k
+            for k in range(newest, max(newest - 100, -1), -1)
+            if rig.matches(command.value, {rig.value_of(rig.tap.servo[k], command.motor)})
+        ),
+        None,
+    )
+    sent = [f[0].t for f in rig.commands]
+    gap = command.t - sent[bisect.bisect_left(sent, command.t) - 1]
+    if carried is None:
+        return f"none of the last 100 outputs carries it; the frame before {ms(gap)} before"
+    return (
+        f"it is the output {newest - carried} before the newest, forwarded "
+        f"{ms(command.t - rig.tap.servo[carried].t)} before; the frame before {ms(gap)} before"
+    )
+
+
 @pytest.mark.parametrize(("rig_name", "phase"), phase_params())
 def test_every_frame_carries_the_newest_motor_output(
     flights: Flights, rig_name: str, phase: str
@@ -882,7 +904,7 @@ def test_every_frame_carries_the_newest_motor_output(
                 wrong.append(
                     f"t={t - flight.started:.3f} s motor {c.motor + 1}: {c.value:g}, allowed "
                     f"{sorted(allowed)}; newest output {newest.servos[:4]} forwarded "
-                    f"{ms(t - newest.t)} before"
+                    f"{ms(t - newest.t)} before; {lag_of(rig, c)}"
                 )
     measured(
         f"{rig_name} tracking, {phase}",
