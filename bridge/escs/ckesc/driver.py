@@ -14,8 +14,8 @@ from bridge.escs import uavcan_v0
 from bridge.escs.ckesc import codec, records
 from bridge.escs.drivers import unit_fraction
 
-# The tail byte (its transfer ID) is the last of the 8 data bytes of 12b and 14b frames alike.
-TAIL_BYTE_INDEX = 7
+# The types whose frames end in a tail byte (its transfer ID), as every UAVCAN v0 frame does;
+# RawCommand_10b has none.
 _TRANSFER_TYPES = {
     "12b": records.TYPE_RAW_COMMAND_12B,
     "14b": records.TYPE_RAW_COMMAND_14B,
@@ -62,7 +62,7 @@ class CkescDriver:
         if transfer_type is not None:
             next_id = self._transfer_ids.next
             for frame in frames:
-                frame.data[TAIL_BYTE_INDEX] = uavcan_v0.tail_byte(next_id(transfer_type))
+                frame.data[-1] = uavcan_v0.tail_byte(next_id(transfer_type))
         return frames
 
     def _encode(self, throttles: list[int]) -> list[can.Message]:
