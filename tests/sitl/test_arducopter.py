@@ -863,12 +863,13 @@ def lag_of(rig: Rig, command: Command) -> str:
         None,
     )
     sent = [f[0].t for f in rig.commands]
-    gap = command.t - sent[bisect.bisect_left(sent, command.t) - 1]
+    k = bisect.bisect_left(sent, command.t)
+    gap = f"the frame before {ms(command.t - sent[k - 1])} before" if k else "the first frame"
     if carried is None:
-        return f"none of the last 100 outputs carries it; the frame before {ms(gap)} before"
+        return f"none of the last 100 outputs carries it; {gap}"
     return (
         f"it is the output {newest - carried} before the newest, forwarded "
-        f"{ms(command.t - rig.tap.servo[carried].t)} before; the frame before {ms(gap)} before"
+        f"{ms(command.t - rig.tap.servo[carried].t)} before; {gap}"
     )
 
 
