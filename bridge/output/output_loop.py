@@ -354,12 +354,15 @@ class OutputLoop:
             tick, now_ns, self._input.fractions, (now_ns - self._last_ns) / 1e9
         )
         # The decision holds for ``now_ns``; a loop stopped or starved between taking the time
-        # and sending (SIGSTOP, swap, a higher-priority task) would carry a decision that may
-        # no longer hold, e.g. running commands from an input gone stale meanwhile. A frame
-        # never leaves over a period after the time its decision was made for.
+        # and sending (SIGSTOP, swap, a higher-priority task, a virtual CPU the host took away)
+        # would carry a decision that may no longer hold: running commands from an input gone
+        # stale meanwhile, or older than the inputs that arrived meanwhile. A frame never
+        # leaves over a period after the time its decision was made for, nor on what was read
+        # before it.
         sending_ns = time.monotonic_ns()
         if sending_ns - now_ns > self._period_ns:
             counters[self._i_redecided] += 1
+            self._input.on_readable(sending_ns)
             frames = selector.select(
                 tick, sending_ns, self._input.fractions, (sending_ns - now_ns) / 1e9
             )

@@ -257,6 +257,23 @@ def test_tick_held_up_before_sending_decides_again(rig: Rig) -> None:
     assert rig.tick() == THROTTLES
 
 
+def test_tick_held_up_before_sending_carries_the_input_that_arrived_meanwhile(rig: Rig) -> None:
+    """Held up over a period between taking the time and sending while the autopilot went on
+    (a virtual CPU the host took away for tens of ms, the autopilot on another): the frame
+    carries the newest input, not the one read before the hold."""
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    taken = time.monotonic_ns()
+    rig.loop.read(taken)
+    rig.outputs([1000, 1250, 1500, 1750], count=1)  # arrives while the loop is held up
+    time.sleep(0.05)  # twenty periods at 400 Hz, well inside the input timeout
+    rig.loop.tick(taken, taken)
+    assert _throttles(rig.observer, 1) == [(0, 500, 1000, 1500)]
+    assert rig.state() == LoopState.RUNNING
+    assert rig.stats["redecided"] == 1
+
+
 def test_tick_a_slow_stream_never_starts_the_motors(rig: Rig) -> None:
     rig.heartbeat(armed=True)
     slow_s = INPUT_TIMEOUT_MS / 1000 * 0.6  # fewer than two inputs per timeout
