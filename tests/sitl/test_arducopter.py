@@ -1102,6 +1102,26 @@ def longest_gap(readings: list[tuple[float, int, int]], start: float, end: float
     return max(b - a for a, b in itertools.pairwise(times))
 
 
+def forwarding_context(
+    flight: Flight, received: list[tuple[float, Any]], start: float, end: float
+) -> str:
+    """Whether the ground station heard ArduCopter itself and the other bridges between
+    ``start`` and ``end``: a silence of everything points at the station or ArduCopter's
+    forwarding, a silence of one bridge at that bridge."""
+    own = [t for t, _ in flight.gcs.received(after=start, sender=(1, 1)) if t <= end]
+    silence = max((b - a for a, b in itertools.pairwise([start, *own, end])), default=end - start)
+    counts = {
+        rig.name: sum(
+            1 for t, m in received if m.get_srcComponent() == rig.component and start <= t <= end
+        )
+        for rig in flight.rigs
+    }
+    return (
+        f"ArduCopter's own messages there: {len(own)}, the longest silence {silence:.2f} s; "
+        f"ESC_TELEMETRY_1_TO_4 of each bridge there: {counts}"
+    )
+
+
 @pytest.mark.parametrize("names", FLIGHTS, ids=flight_id)
 def test_esc_telemetry_reaches_the_ground_station(flights: Flights, names: tuple[str, ...]) -> None:
     """ESC_TELEMETRY_1_TO_4 from each bridge (components 191, 192), forwarded by ArduCopter
@@ -1154,7 +1174,8 @@ def test_esc_telemetry_reaches_the_ground_station(flights: Flights, names: tuple
         assert abs(len(rate_span) - 2 * (end - armed)) <= 2.5, (
             f"{len(rate_span)} ESC_TELEMETRY_1_TO_4 from the {rig.name} bridge (component "
             f"{rig.component}) reached the ground station in {end - armed:.1f} s of takeoff "
-            f"and hover ({hz:.1f} Hz; 2 Hz expected); gaps over 0.75 s after arming: {gaps}"
+            f"and hover ({hz:.1f} Hz; 2 Hz expected); gaps over 0.75 s after arming: {gaps}; "
+            + forwarding_context(flight, received, armed, end)
         )
         assert len(mine) >= 2, f"{len(mine)} ESC_TELEMETRY_1_TO_4 from {rig.name} in hover"
         for t, msg in mine:
