@@ -38,7 +38,7 @@ import os
 import statistics
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1096,10 +1096,10 @@ def test_ardupilot_motor_test_within_a_heartbeat_period(flights: Flights, rig_na
     assert max(delays) <= bound, f"motor test delays {[ms(d) for d in delays]} (bound {ms(bound)})"
 
 
-def longest_gap(readings: list[tuple[float, int, int]], start: float, end: float) -> float:
-    """The longest time between two readings (or ``start``/``end``) within [start, end]."""
-    times = [start, *(t for t, _, _ in readings if start <= t <= end), end]
-    return max(b - a for a, b in itertools.pairwise(times))
+def longest_gap(times: Iterable[float], start: float, end: float) -> float:
+    """The longest time between two of ``times`` (or ``start``/``end``) within [start, end]."""
+    within = [start, *(t for t in times if start <= t <= end), end]
+    return max(b - a for a, b in itertools.pairwise(within))
 
 
 def forwarding_context(
@@ -1109,7 +1109,7 @@ def forwarding_context(
     ``start`` and ``end``: a silence of everything points at the station or ArduCopter's
     forwarding, a silence of one bridge at that bridge."""
     own = [t for t, _ in flight.gcs.received(after=start, sender=(1, 1)) if t <= end]
-    silence = max((b - a for a, b in itertools.pairwise([start, *own, end])), default=end - start)
+    silence = longest_gap(own, start, end)
     counts = {
         rig.name: sum(
             1 for t, m in received if m.get_srcComponent() == rig.component and start <= t <= end
@@ -1184,7 +1184,7 @@ def test_esc_telemetry_reaches_the_ground_station(flights: Flights, names: tuple
                 # after: the stamps of two processes on a loaded machine can be a few ms apart).
                 seen = [(r, v) for ts, r, v in bus[m] if t - RELAY_LAG_S <= ts <= t + 0.05]
                 rpms, volts = {r for r, _ in seen}, {v for _, v in seen}
-                silence = longest_gap(bus[m], t - RELAY_LAG_S, t)
+                silence = longest_gap((ts for ts, _, _ in bus[m]), t - RELAY_LAG_S, t)
                 if silence > TELEMETRY_TIMEOUT_S - TELEMETRY_SLACK_S and msg.rpm[m] == 0:
                     # The ESC fell silent on the bus for longer than the bridge's timeout, so
                     # the bridge may rightly have called it offline: values unknown (0).
