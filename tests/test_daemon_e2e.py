@@ -228,14 +228,16 @@ def test_dronecan_commands_multi_frame_and_node_status(
     _, status = reader.wait_for(lambda f: isinstance(f.message, NodeStatus), 3.0, after=start)
     assert status.source_node == 10 and status.priority == 31
     assert isinstance(status.message, NodeStatus) and status.message.health == 0
-    # Consecutive transfers take consecutive transfer IDs (mod 32).
+    # Consecutive transfers take consecutive transfer IDs (mod 32): judged on the pairs that
+    # reached the observer one 2.5 ms tick apart by the kernel's stamps, since on a loaded
+    # machine the observer's socket may overflow and lose a transfer between two it kept.
     recent = [
-        f.transfer_id
-        for _, m in observer.frames[-60:]
+        (t, f.transfer_id)
+        for t, m in observer.frames[-120:]
         if (f := reader.frame(m)) is not None and raw_commands(f) is not None
     ]
-    assert len(recent) > 5
-    assert all(b == (a + 1) % 32 for a, b in itertools.pairwise(recent))
+    steps = [(b - a) % 32 for (ta, a), (tb, b) in itertools.pairwise(recent) if tb - ta < 0.00375]
+    assert len(steps) > 10 and set(steps) == {1}, f"transfer ID steps a tick apart: {steps}"
     autopilot.armed = False
     autopilot.heartbeat()
     disarmed_at = time.monotonic()
