@@ -1160,22 +1160,27 @@ def test_esc_telemetry_reaches_the_ground_station(flights: Flights, names: tuple
         # The bridge sends ArduPilot's link ESC_TELEMETRY_1_TO_4 at 2 Hz (its per-link set,
         # kept small for a telemetry radio), counted from the arming to the stall (takeoff
         # and hover, ~10 s: the hover alone is too short to tell a rate); a boundary may cut
-        # one, ArduCopter's forwarding on a loaded machine drop another.
+        # one, ArduCopter's forwarding on a loaded machine drop another. The span ends with
+        # the last message the station read from ArduCopter itself before the stall: what
+        # ArduCopter forwarded after it was still on its way. (In CI the station once heard
+        # none of this bridge's messages in the 1.48 s before the stall, and nothing at all
+        # from ArduCopter for 1.19 s of the span: this process not running, most likely.)
         armed = flight.events["armed"]
+        heard = max(t for t, _ in flight.gcs.received(after=armed, sender=(1, 1)) if t <= end)
         rate_span = [
-            t for t, m in received if m.get_srcComponent() == rig.component and armed <= t <= end
+            t for t, m in received if m.get_srcComponent() == rig.component and armed <= t <= heard
         ]
-        hz = len(rate_span) / (end - armed)
+        hz = len(rate_span) / (heard - armed)
         gaps = [
             f"{b - a:.2f} s from {a - armed:.2f} s"
-            for a, b in itertools.pairwise([armed, *rate_span, end])
+            for a, b in itertools.pairwise([armed, *rate_span, heard])
             if b - a > 0.75
         ]
-        assert abs(len(rate_span) - 2 * (end - armed)) <= 2.5, (
+        assert abs(len(rate_span) - 2 * (heard - armed)) <= 2.5, (
             f"{len(rate_span)} ESC_TELEMETRY_1_TO_4 from the {rig.name} bridge (component "
-            f"{rig.component}) reached the ground station in {end - armed:.1f} s of takeoff "
+            f"{rig.component}) reached the ground station in {heard - armed:.1f} s of takeoff "
             f"and hover ({hz:.1f} Hz; 2 Hz expected); gaps over 0.75 s after arming: {gaps}; "
-            + forwarding_context(flight, received, armed, end)
+            + forwarding_context(flight, received, armed, heard)
         )
         assert len(mine) >= 2, f"{len(mine)} ESC_TELEMETRY_1_TO_4 from {rig.name} in hover"
         for t, msg in mine:
