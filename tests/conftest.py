@@ -52,6 +52,14 @@ MULTICAST_GROUP = "239.74.163.2"
 ESC_BRIDGE = str(Path(sys.executable).parent / "esc-bridge")
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``--numprocesses=auto``: a worker more than the CPUs. Most of the suite waits rather
+    than computes (flights in real time, a kernel in UML reading its files, daemons starting):
+    a third worker on 2 CPUs took the suite from 10 min 53 s to 8 min 53 s, two runs back to
+    back."""
+    return (os.cpu_count() or 1) + 1
+
+
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as sock:
         sock.bind(("127.0.0.1", 0))
