@@ -60,6 +60,34 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return (os.cpu_count() or 1) + 1
 
 
+LONG_FILES = (
+    "sitl/test_arducopter.py",
+    "linux/test_socketcan.py",
+    "test_safety_e2e.py",
+    "plot/test_plot_cli.py",
+    "linux/test_systemd.py",
+    "sitl/test_px4.py",
+    "sim/test_demo.py",
+    "mavlink/test_link_sets.py",
+    "telemetry/test_mcap_recording.py",
+    "daemon/test_preflight.py",
+)
+"""The files that keep a worker longest (junit's times of a clean clone's run, summed per
+file: 145 s down to 49 s), longest first."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The long files first: xdist hands each worker whole files in this order, and a long one
+    handed out last would end the suite with the other workers idle."""
+
+    def rank(item: pytest.Item) -> int:
+        tests = ROOT / "tests"
+        path = item.path.relative_to(tests).as_posix() if item.path.is_relative_to(tests) else ""
+        return LONG_FILES.index(path) if path in LONG_FILES else len(LONG_FILES)
+
+    items.sort(key=rank)  # stable: the rest in pytest's own order
+
+
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as sock:
         sock.bind(("127.0.0.1", 0))
