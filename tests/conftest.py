@@ -8,6 +8,7 @@ interface with hop_limit 0 (TTL 0): the frames never leave this machine.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import multiprocessing
 import os
 import signal
@@ -88,11 +89,36 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=rank)  # stable: the rest in pytest's own order
 
 
+def _own_ports() -> range:
+    """This worker's block of the ports from 20000 (above the SITLs' fixed ports: ArduPilot's
+    5760 + 10·N, PX4's 13030 to 19459) to the kernel's ephemeral range (32768 by default), which
+    the kernel never hands to a socket bound to port 0: another worker's, an autopilot's, a
+    daemon's. A port asked of the kernel and let go (port 0, then close) could go to another
+    worker in between: in CI a daemon could not bind the port PX4 had just taken."""
+    with open("/proc/sys/net/ipv4/ip_local_port_range") as ranges:
+        ephemeral_low = int(ranges.read().split()[0])
+    low = 20000
+    assert ephemeral_low > low + 1000, f"the ephemeral ports start at {ephemeral_low}"
+    index = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
+    size = (ephemeral_low - low) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    return range(low + index * size, low + (index + 1) * size)
+
+
+_OWN_PORTS = _own_ports()
+_next_own_port = itertools.cycle(_OWN_PORTS)
+
+
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+    """A port of this worker's own (:func:`_own_ports`) that no socket of ``kind`` holds."""
+    for _ in _OWN_PORTS:
+        port = next(_next_own_port)
+        with socket.socket(socket.AF_INET, kind) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise AssertionError(f"every port of {_OWN_PORTS} is in use")
 
 
 def can_args(can_port: int) -> list[str]:

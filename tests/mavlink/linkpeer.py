@@ -9,12 +9,12 @@ fixtures with ``make_link = linkpeer.make_link`` (an import would shadow the arg
 
 from __future__ import annotations
 
-import socket
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from conftest import free_port
 from pymavlink import mavutil
 from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -29,13 +29,6 @@ ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
 
 
 TIMEOUT_S = 3.0
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = TIMEOUT_S) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 import linkpeer
+from conftest import free_port
 from linkpeer import (
     ACCEPTED,
     USER_1,
@@ -15,7 +16,6 @@ from linkpeer import (
     MakeLink,
     MakePeer,
     command,
-    free_port,
     receive_acks,
     receive_until,
 )

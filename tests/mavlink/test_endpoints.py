@@ -7,7 +7,7 @@ import threading
 
 import linkpeer
 import pytest
-from linkpeer import free_port
+from conftest import free_port
 
 from bridge.config import MavlinkConfig
 from bridge.errors import ConfigError

@@ -10,7 +10,8 @@ from typing import Any
 
 import linkpeer
 import pytest
-from linkpeer import MakeLink, MakePeer, Peer, free_port, heartbeat, servo
+from conftest import free_port
+from linkpeer import MakeLink, MakePeer, Peer, heartbeat, servo
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig

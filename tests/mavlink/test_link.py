@@ -12,16 +12,8 @@ import time
 
 import linkpeer
 import pytest
-from linkpeer import (
-    TIMEOUT_S,
-    MakeLink,
-    MakePeer,
-    free_port,
-    heartbeat,
-    servo,
-    wait_messages,
-    wait_until,
-)
+from conftest import free_port
+from linkpeer import TIMEOUT_S, MakeLink, MakePeer, heartbeat, servo, wait_messages, wait_until
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from bridge.config import MavlinkConfig

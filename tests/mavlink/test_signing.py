@@ -5,6 +5,7 @@ refused and counted, outputs signing too (real pymavlink peers on 127.0.0.1).
 from __future__ import annotations
 
 import linkpeer
+from conftest import free_port
 from linkpeer import (
     ACCEPTED,
     KEY,
@@ -12,7 +13,6 @@ from linkpeer import (
     MakeLink,
     MakePeer,
     command,
-    free_port,
     receive_acks,
     servo,
     wait_messages,

@@ -9,13 +9,13 @@ from pathlib import Path
 from typing import Any
 
 import linkpeer
+from conftest import free_port
 from linkpeer import (
     ACCEPTED,
     USER_1,
     MakeLink,
     MakePeer,
     command,
-    free_port,
     heartbeat,
     receive_until,
     servo,

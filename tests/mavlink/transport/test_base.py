@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 import watched
-from watched import LOGGER, Pty, free_port, open_descriptors, wait_for_helpers_to_stop
+from conftest import free_port
+from watched import LOGGER, Pty, open_descriptors, wait_for_helpers_to_stop
 
 from bridge.mavlink.endpoints import parse_url
 from bridge.mavlink.transport import open_transport

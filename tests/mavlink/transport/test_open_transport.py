@@ -11,7 +11,8 @@ from collections.abc import Callable
 
 import pytest
 import watched
-from watched import Pty, free_port, occupied_tcp, occupied_udp
+from conftest import free_port
+from watched import Pty, occupied_tcp, occupied_udp
 
 from bridge.errors import LinkError
 from bridge.mavlink.endpoints import parse_url

@@ -14,7 +14,8 @@ import time
 
 import pytest
 import watched
-from watched import LOGGER, TIMEOUT_S, Open, frame, free_port, pump, read_fd, receive
+from conftest import free_port
+from watched import LOGGER, TIMEOUT_S, Open, frame, pump, read_fd, receive
 
 from bridge.mavlink.transport.tcp import TcpClientTransport, TcpServerTransport
 

@@ -12,7 +12,8 @@ import time
 
 import pytest
 import watched
-from watched import TIMEOUT_S, Open, frame, free_port, receive_datagram
+from conftest import free_port
+from watched import TIMEOUT_S, Open, frame, receive_datagram
 
 from bridge.mavlink.transport.udp import UdpInTransport, UdpOutTransport
 

@@ -45,13 +45,6 @@ TIMEOUT_S = 5.0
 LOGGER = "bridge.mavlink.transport"
 
 
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 def voluntary_switches() -> int:
     """Times this thread went to sleep in the kernel (waited) so far."""
     return resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
