@@ -251,6 +251,27 @@ def test_demo_runs_headless_and_cleans_up(protocol: str, extra: list[str]) -> No
     assert _processes_with(marker) == []  # bridge, its loop process and sim all gone
 
 
+def test_a_killed_demo_takes_its_children_with_it() -> None:
+    """SIGKILL leaves the demo no time to stop its children: the kernel sends each SIGTERM
+    (the bridge sends safe values and exits), none is left running alone."""
+    marker = uuid.uuid4().hex
+    proc = _demo(marker=marker)
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the bridge is up (its signal handlers too) and reporting
+            if "| online " in line:
+                break
+        assert len(_processes_with(marker)) >= 4  # the demo, bridge, its loop process, sim
+        proc.kill()
+        proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    deadline = time.monotonic() + 20
+    while (left := _processes_with(marker)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert left == []
+
+
 def test_demo_reports_a_child_that_dies_and_stops_the_rest() -> None:
     marker = uuid.uuid4().hex
     proc = _demo(marker=marker)
