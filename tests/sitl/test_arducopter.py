@@ -478,19 +478,22 @@ def wait_disarmed_at_gcs(flight: Flight, after: float, timeout_s: float, what: s
 
 def wait_motor_test_over(flight: Flight, test: MotorTest, what: str) -> float:
     """When ``test`` ended at the ground station: the first disarmed HEARTBEAT after the armed
-    one it began with (ArduCopter reports armed during its own motor test). A disarmed
-    HEARTBEAT from before the test started must not end it: at load 8 one did, and the next
-    test was sent while this one still ran."""
-    gcs = flight.gcs
+    one it began with (ArduCopter reports armed during its own motor test), in the order they
+    arrived. Not by receive time: a disarmed HEARTBEAT from before the test, read in one batch
+    with the first armed one, has its stamp, and at load 8 that ended test A 40 ms in (the next
+    test was sent while this one still ran; before that, one stamped after ``test.sent`` did)."""
+
+    def armed_states() -> list[bool]:
+        beats = flight.gcs.received("HEARTBEAT", test.sent)
+        return [armed(m) for _, m in beats if from_autopilot(m)]
+
+    def over(states: list[bool]) -> bool:
+        return True in states and False in states[states.index(True) :]
+
     # Generous: a wait for ArduCopter's report, read by this process's ground station thread,
     # which may lag seconds behind beside the decoding of two busy buses; no time is judged.
-    gcs.wait_for(
-        "HEARTBEAT", lambda m: from_autopilot(m) and armed(m), 20, test.sent, first=True, what=what
-    )
-    began = next(
-        t for t, m in gcs.received("HEARTBEAT", test.sent) if from_autopilot(m) and armed(m)
-    )
-    return wait_disarmed_at_gcs(flight, began, 20, what)
+    wait_until(lambda: True in armed_states(), 20, f"{what}: armed")
+    return wait_until(lambda: over(armed_states()), 20, f"{what}: disarmed after")
 
 
 def arm_and_take_off(flight: Flight, altitude_m: float) -> None:
