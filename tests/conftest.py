@@ -233,6 +233,9 @@ class Autopilot:
         self.mav = self.conn.mav
         self.armed = False
         self.pwm: list[int] = [1000] * 8
+        self.output_times: list[float] = []
+        """When each SERVO_OUTPUT_RAW was sent (monotonic): on a loaded machine this thread may
+        fall quiet for longer than a bridge's input timeout."""
         self._stop = threading.Event()
         self._streaming = threading.Event()
         self._thread: threading.Thread | None = None
@@ -253,9 +256,11 @@ class Autopilot:
         """``time_us``: its time_usec (default: now, on the monotonic clock)."""
         values = (list(pwm) + [0] * 16)[:16]
         extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}  # MAVLink 2 only
+        now = time.monotonic()
         if time_us is None:
-            time_us = int(time.monotonic() * 1e6)
+            time_us = int(now * 1e6)
         self.mav.servo_output_raw_send(time_us & 0xFFFFFFFF, 0, *values[:8], **extensions)
+        self.output_times.append(now)
 
     def start_stream(self, rate_hz: float = 50.0) -> None:
         """Send HEARTBEAT at 10 Hz and SERVO_OUTPUT_RAW of ``self.pwm`` at ``rate_hz``."""
