@@ -617,7 +617,10 @@ def test_a_missing_node_is_reported_within_the_timeout(
     for command in ("info", "config", "self-test", "maintenance", "rotation", "report-rate"):
         start = time.monotonic()
         code, out, err = esc(capsys, bench, command, "--node", "7")
-        assert time.monotonic() - start < float(TIMEOUT) + 0.5, command
+        # It gives up after the timeout (the error names 0.3 s, below) rather than hang; the
+        # bound leaves room for a loaded machine, where self-test once took 1.5 s (the bus,
+        # the simulator and this command share one interpreter).
+        assert time.monotonic() - start < float(TIMEOUT) + 2.0, command
         assert (code, out) == (1, ""), command
         assert err.startswith("esc-bridge: error: node 7 did not answer "), err
         assert "within 0.3 s" in err and "`esc-bridge esc scan` lists the ESCs" in err
