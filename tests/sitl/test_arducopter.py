@@ -480,8 +480,9 @@ def wait_motor_test_over(flight: Flight, test: MotorTest, what: str) -> float:
     """When ``test`` ended at the ground station: the first disarmed HEARTBEAT after the armed
     one it began with (ArduCopter reports armed during its own motor test), in the order they
     arrived. Not by receive time: a disarmed HEARTBEAT from before the test, read in one batch
-    with the first armed one, has its stamp, and at load 8 that ended test A 40 ms in (the next
-    test was sent while this one still ran; before that, one stamped after ``test.sent`` did)."""
+    with the first armed one, has its stamp (most likely what ended test A 40 ms in, in one run
+    of the suite, the next test sent while this one still ran; before that, at load 8, one
+    stamped after ``test.sent`` did)."""
 
     def armed_states() -> list[bool]:
         beats = flight.gcs.received("HEARTBEAT", test.sent)
