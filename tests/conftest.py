@@ -81,8 +81,9 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The long files first: xdist hands each worker whole files in this order, and a long one
     handed out last would end the suite with the other workers idle."""
 
+    tests = ROOT / "tests"
+
     def rank(item: pytest.Item) -> int:
-        tests = ROOT / "tests"
         path = item.path.relative_to(tests).as_posix() if item.path.is_relative_to(tests) else ""
         return LONG_FILES.index(path) if path in LONG_FILES else len(LONG_FILES)
 
