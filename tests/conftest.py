@@ -8,11 +8,13 @@ interface with hop_limit 0 (TTL 0): the frames never leave this machine.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import itertools
 import multiprocessing
 import os
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -294,11 +296,32 @@ class Autopilot:
         self.conn.close()
 
 
+SIOCGSTAMPNS = 0x8907  # Linux: the kernel's receive time of a socket's last datagram
+
+
+def kernel_receive_time(sock: socket.socket) -> float | None:
+    """When the kernel received ``sock``'s last datagram, on the monotonic clock (None if it
+    cannot say)."""
+    try:
+        stamp = fcntl.ioctl(sock, SIOCGSTAMPNS, bytes(16))
+    except OSError:
+        return None
+    seconds, nanoseconds = struct.unpack("qq", stamp)
+    return float(seconds + nanoseconds * 1e-9 - wall_minus_monotonic())
+
+
 class MavlinkReceiver:
-    """Decodes, with the project's dialect, what the daemon sends back to a pymavlink link."""
+    """Decodes, with the project's dialect, what the daemon sends back to a pymavlink link, each
+    message stamped with the kernel's receive time (monotonic) when the link is a UDP socket:
+    a rate counted over a window then holds however late this thread got to a datagram on a
+    loaded machine."""
 
     def __init__(self, conn: Any) -> None:
         self._conn = conn
+        sock = getattr(conn, "port", None)  # pymavlink's UDP connections keep their socket there
+        self._socket = sock if isinstance(sock, socket.socket) else None
+        if self._socket is not None:
+            kernel_receive_time(self._socket)  # the first ask turns the kernel's stamps on
         self._parser = load_dialect().MAVLink(None)
         self._parser.robust_parsing = True
         self.messages: list[tuple[float, Any]] = []
@@ -317,6 +340,8 @@ class MavlinkReceiver:
                 time.sleep(0.002)
                 continue
             now = time.monotonic()
+            if self._socket is not None:
+                now = min(kernel_receive_time(self._socket) or now, now)
             for msg in self._parser.parse_buffer(data) or []:
                 with self._lock:
                     self.messages.append((now, msg))

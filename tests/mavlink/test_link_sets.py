@@ -3,7 +3,7 @@
 The autopilot is pymavlink on loopback UDP announcing itself as ArduPilot, PX4 or another stack
 in its HEARTBEAT; a ground station is a pymavlink ``udpin`` connection named in ``[mavlink]
 outputs``; simulated CKESCs send real telemetry frames on the cross-process udp_multicast bus.
-What arrives is decoded with the project's dialect and timed on arrival.
+What arrives is decoded with the project's dialect and timed by the kernel's receive stamps.
 
 Rates are measured over :data:`WINDOW_S` seconds as (messages - 1) / (last - first) of one
 batch's messages, and must be within :data:`RATE_TOLERANCE` of the configured rate. The sender
@@ -15,10 +15,12 @@ room for several such stalls at 20 Hz and for ±0.4 s of jitter at 1 Hz.
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -115,7 +117,13 @@ def start(tmp_path: Path, start_daemon: Callable[..., Daemon], mavlink: str, *ex
     return start_daemon("--mixer", "passthrough-6", "--config", str(config), *extra)
 
 
-def measure(rx: MavlinkReceiver, since: float, until: float) -> tuple[dict[str, float], float]:
+@dataclass(frozen=True)
+class Rate:
+    hz: float
+    longest_gap_s: float  # between two messages in the window, or from its ends: what a stall took
+
+
+def measure(rx: MavlinkReceiver, since: float, until: float) -> tuple[dict[str, Rate], float]:
     """Each ESC message kind's rate (batch 0 for ESC_STATUS/ESC_INFO) and the ESC messages'
     bytes per second, from what arrived between ``since`` and ``until``."""
     with rx._lock:
@@ -131,7 +139,13 @@ def measure(rx: MavlinkReceiver, since: float, until: float) -> tuple[dict[str, 
             times.setdefault(kind, []).append(t)
     # Counted over the window, not from the first to the last arrival: at load 8 a late first
     # or last message moved that span enough to read 10 Hz as 12.
-    rates = {kind: len(ts) / (until - since) for kind, ts in times.items()}
+    rates = {
+        kind: Rate(
+            len(ts) / (until - since),
+            max(b - a for a, b in itertools.pairwise([since, *ts, until])),
+        )
+        for kind, ts in times.items()
+    }
     return rates, size / (until - since)
 
 
@@ -141,20 +155,21 @@ def esc_frames(rx: MavlinkReceiver) -> list[tuple[float, bytes]]:
         return [(t, bytes(m.get_msgbuf())) for t, m in rx.messages if m.get_type() in ESC_KINDS]
 
 
-def assert_rates(where: str, rates: dict[str, float], expected: dict[Family, float]) -> None:
-    print(where, {kind: round(hz, 2) for kind, hz in sorted(rates.items())})  # with -s
+def assert_rates(where: str, rates: dict[str, Rate], expected: dict[Family, float]) -> None:
+    print(where, {kind: round(rate.hz, 2) for kind, rate in sorted(rates.items())})  # with -s
     for family, hz in expected.items():
         for kind in FAMILY_KINDS[family]:
-            got = rates.get(kind, 0.0)
+            rate = rates.get(kind, Rate(0.0, WINDOW_S))
             if hz == 0:
-                assert got == 0, f"{where}: {kind} at {got:.2f} Hz, expected none"
+                assert rate.hz == 0, f"{where}: {kind} at {rate.hz:.2f} Hz, expected none"
             else:
-                assert abs(got - hz) <= RATE_TOLERANCE * hz, (
-                    f"{where}: {kind} at {got:.2f} Hz, expected {hz:g} Hz ±20 %"
+                assert abs(rate.hz - hz) <= RATE_TOLERANCE * hz, (
+                    f"{where}: {kind} at {rate.hz:.2f} Hz, expected {hz:g} Hz ±20 % "
+                    f"(longest gap {rate.longest_gap_s:.2f} s)"
                 )
 
 
-def wait_and_measure(*receivers: MavlinkReceiver) -> list[tuple[dict[str, float], float]]:
+def wait_and_measure(*receivers: MavlinkReceiver) -> list[tuple[dict[str, Rate], float]]:
     """Wait for telemetry to flow on every receiver, then measure them all over one window."""
     for rx in receivers:
         rx.wait_for("HEARTBEAT", lambda m: m.get_srcComponent() == 191, timeout_s=15)
