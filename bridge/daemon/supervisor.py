@@ -369,8 +369,8 @@ class Supervisor:
 
         log.info(
             "output loop: %d ticks, %d frames, %d send errors, %d ticks held back, %d overruns, "
-            "%d immediate sends, %d tick errors, %d decided again; wake-up lateness p50 %d µs, "
-            "p99 %d µs, max %d µs (last %d ticks)",
+            "%d immediate sends, %d tick errors, %d decided again, %d left late; wake-up "
+            "lateness p50 %d µs, p99 %d µs, max %d µs (last %d ticks)",
             stats["ticks"],
             stats["frames_sent"],
             stats["send_errors"],
@@ -379,6 +379,7 @@ class Supervisor:
             stats["immediate_sends"],
             stats["tick_errors"],
             stats["redecided"],
+            stats["left_late"],
             at(0.5),
             at(0.99),
             lateness[-1],

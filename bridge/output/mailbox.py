@@ -311,6 +311,7 @@ STAT_FIELDS = (
     "immediate_sends",  # ticks sent at once for a fresh input (latency = "immediate")
     "tick_errors",  # ticks whose commands could not be encoded: safe values were sent instead
     "redecided",  # ticks decided again: the loop was held up over a period before sending
+    "left_late",  # ticks whose frames left over a period after their decision (held up sending)
     "realtime",  # 1 when the loop runs with SCHED_FIFO priority
     "stop_requested",  # written by the supervisor: the one field the loop only reads
     "lateness_count",  # entries written to the lateness ring

@@ -259,6 +259,7 @@ class OutputLoop:
         self._i_sent, self._i_tick_errors = slot("frames_sent"), slot("tick_errors")
         self._i_lateness_count, self._i_stop = slot("lateness_count"), slot("stop_requested")
         self._i_test_motor, self._i_redecided = slot("motor_test_motor"), slot("redecided")
+        self._i_left_late = slot("left_late")
         self._i_entered = slot("entered_starting")  # + a LoopState: its entry count
         self._i_tx_state, self._i_held = slot("tx_state"), slot("ticks_held")
         self._i_send_errors, self._i_probes = slot("send_errors"), slot("tx_probes")
@@ -379,6 +380,11 @@ class OutputLoop:
         counters[self._i_test_motor] = selector.test_index + 1
         counters[self._i_tick_errors] = selector.faults
         counters[self._i_sent] += self._send(frames, now_ns)
+        if frames and time.monotonic_ns() - now_ns > self._period_ns:
+            # Held up between the last look at the clock and the frames' leaving (its CPU
+            # taken between two instructions): nothing in the process can prevent that, but
+            # the frames carried a decision over a period old, so it is counted and logged.
+            counters[self._i_left_late] += 1
         self._count_tx()
         counters[self._i_ticks] += 1
         self._last_ns = now_ns

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import can
 import pytest
+from can.interfaces.virtual import VirtualBus
 from conftest import Autopilot, free_port
 
 from bridge.config import build_config
@@ -272,6 +273,23 @@ def test_tick_held_up_before_sending_carries_the_input_that_arrived_meanwhile(ri
     assert _throttles(rig.observer, 1) == [(0, 500, 1000, 1500)]
     assert rig.state() == LoopState.RUNNING
     assert rig.stats["redecided"] == 1
+
+
+def test_tick_held_up_while_its_frame_leaves_is_counted_as_left_late(rig: Rig) -> None:
+    """Held up after the loop's last look at the clock, while its frame is on its way to the
+    bus (here the observer's receive queue, which python-can's virtual bus takes to deliver a
+    frame, locked by another thread for 50 ms): the frame leaves on the decision made, and the
+    tick is counted as left late, for the exit summary to say."""
+    rig.heartbeat(armed=True)
+    rig.outputs(PWM)
+    assert rig.tick() == THROTTLES
+    before = rig.stats["left_late"]
+    assert isinstance(rig.observer, VirtualBus)
+    delivery = rig.observer.queue.mutex  # its receive queue's lock
+    delivery.acquire()
+    threading.Timer(0.05, delivery.release).start()
+    assert rig.tick() == THROTTLES
+    assert rig.stats["left_late"] - before == 1
 
 
 def test_tick_a_slow_stream_never_starts_the_motors(rig: Rig) -> None:
