@@ -90,11 +90,12 @@ RX_SAMPLE_S = 0.05
 DRAINED_BYTES = 16 << 10  # ~20 frames: the commands keep arriving, so never quite 0
 STALL_S = 0.010  # a pause of the ESC process longer than this is noted
 CAN_IN = re.compile(
-    r"CAN in: (\d+) frames read, (\d+) telemetry, (\d+) malformed, (\d+) read errors; "
-    r"(\d+) of (\d+) ESCs online"
+    r"CAN in: (\d+) frames read, (\d+) telemetry, (\d+) malformed, \d+ error frames, (\d+) read "
+    r"errors; (\d+) of (\d+) ESCs online"
 )
 LOOP_SUMMARY = re.compile(
-    r"output loop: (\d+) ticks, (\d+) frames, (\d+) send errors, (\d+) overruns, .*"
+    r"output loop: (\d+) ticks, (\d+) frames, (\d+) send errors, \d+ ticks held back, (\d+) "
+    r"overruns, .*"
     r"lateness p50 (\d+) µs, p99 (\d+) µs, max (\d+) µs"
 )
 
