@@ -35,6 +35,7 @@ import bisect
 import contextlib
 import itertools
 import os
+import re
 import statistics
 import threading
 import time
@@ -298,6 +299,22 @@ class Rig:
         j = max(min(j, i - 1), 0)
         servo = self.tap.servo
         return {self.value_of(servo[k], motor) for k in range(j, i + 1)} if i >= 0 else set()
+
+    def allowed_between(self, start: float, end: float, motor: int) -> set[float]:
+        """The values a frame decided at some moment from ``start`` to ``end`` may carry: what
+        :meth:`allowed` gives at ``start``, and every output forwarded since, up to the newest
+        at ``end``."""
+        i = self.newest_index(end + CLOCK_SKEW_S)
+        j = bisect.bisect_right(self._servo_sent, start - PERIOD_S) - 1
+        j = max(min(j, self.newest_index(start + CLOCK_SKEW_S) - 1), 0)
+        return {self.value_of(s, motor) for s in self.tap.servo[j : i + 1]}
+
+    def left_late(self) -> int:
+        """The ticks the bridge counted as left late (its exit summary): frames that left over
+        a period after their decision, the loop held up after its last look at the clock."""
+        found = re.search(r"(\d+) left late", self.bridge.log_path.read_text(errors="replace"))
+        assert found, f"no exit summary in {self.bridge.log_path}:\n{self.bridge.tail(15)}"
+        return int(found.group(1))
 
     def matches(self, value: float, allowed: set[float]) -> bool:
         return any(abs(value - a) <= self.tolerance for a in allowed)
@@ -884,11 +901,20 @@ def test_every_frame_carries_the_newest_motor_output(
     """Every command frame sent while armed with fresh input equals the passthrough scaling of
     the newest SERVO_OUTPUT_RAW, with the lag fixed-rate sending implies: the frame at t
     carries the newest output the tap had begun to forward by t, the one before it, or one
-    forwarded within the output period before t (Rig.allowed)."""
+    forwarded within the output period before t (Rig.allowed).
+
+    But a frame that left late: a loop held up after its last look at the clock (its virtual
+    CPU taken by the host, at SCHED_FIFO) sends, when it runs again, what it decided before.
+    No process can prevent that, and the bridge counts each such tick (``left late`` in its
+    exit summary). So a frame off the newest passes only if it came over a tick after the frame
+    before it (the ticks between were missed), it carries what the bridge had at some moment
+    since that frame (Rig.allowed_between), and the bridge counted at least as many ticks left
+    late in the flight as the phase has such frames."""
     flight = flights.of(rig_name)
     rig = rig_of(flight, rig_name)
     start, end = phases(flight)[phase]
     frames = judged(rig, start, end)
+    sent = [f[0].t for f in rig.commands]
     after_silence = sum(
         1 for f in rig.commands if start <= f[0].t <= end and rig.soon_after_silence(f[0].t)
     )
@@ -897,26 +923,42 @@ def test_every_frame_carries_the_newest_motor_output(
         f"(of {sum(1 for f in rig.commands if start <= f[0].t <= end)} in the phase)"
     )
     wrong = []
+    late = []  # frames off the newest that left late
     exact = 0
     for frame in frames:
         t = frame[0].t
         newest = rig.tap.servo[rig.newest_index(t)]
         if all(c.value == rig.value_of(newest, c.motor) for c in frame):
             exact += 1
-        for c in frame:
-            allowed = rig.allowed(t, c.motor)
-            if not rig.matches(c.value, allowed):
-                wrong.append(
-                    f"t={t - flight.started:.3f} s motor {c.motor + 1}: {c.value:g}, allowed "
-                    f"{sorted(allowed)}; newest output {newest.servos[:4]} forwarded "
-                    f"{ms(t - newest.t)} before; {lag_of(rig, c)}"
-                )
+        off = [c for c in frame if not rig.matches(c.value, rig.allowed(t, c.motor))]
+        k = bisect.bisect_left(sent, t)
+        before = sent[k - 1] if k else None
+        if (
+            off
+            and before is not None
+            and t - before > PERIOD_S + CLOCK_SKEW_S
+            and all(rig.matches(c.value, rig.allowed_between(before, t, c.motor)) for c in off)
+        ):
+            late.append(t)
+            continue
+        for c in off:
+            wrong.append(
+                f"t={t - flight.started:.3f} s motor {c.motor + 1}: {c.value:g}, allowed "
+                f"{sorted(rig.allowed(t, c.motor))}; newest output {newest.servos[:4]} "
+                f"forwarded {ms(t - newest.t)} before; {lag_of(rig, c)}"
+            )
     measured(
         f"{rig_name} tracking, {phase}",
         f"{exact / len(frames):.1%} of {len(frames)} frames equal the newest output exactly, "
         f"{1 - len(wrong) / len(frames) / len(frames[0]):.2%} within one period; "
         f"{after_silence} frames within {RESUME_S * 1000:.0f} ms after a silence of the "
-        "outputs not judged",
+        f"outputs not judged; {len(late)} left late",
+    )
+    counted = rig.left_late()
+    assert len(late) <= counted, (
+        f"{len(late)} frames off the newest output after a gap, at t = "
+        f"{[round(t - flight.started, 3) for t in late[:10]]} s, but the bridge counted "
+        f"{counted} ticks left late"
     )
     assert not wrong, (
         f"{len(wrong)} commands off the newest output:\n"
