@@ -387,6 +387,17 @@ class Supervisor:
         )
 
     def _log_telemetry_summary(self) -> None:
+        sent = self.fanout.mavlink.stats
+        log.info(
+            "MAVLink ESC telemetry out: %d ESC_STATUS, %d ESC_INFO, %d ESC_TELEMETRY, %d failed "
+            "rounds, %d rounds held up (the longest %.2f s late)",
+            sent.esc_status,
+            sent.esc_info,
+            sent.esc_telemetry,
+            sent.errors,
+            sent.held_up,
+            sent.longest_hold_s,
+        )
         reader = self.fanout.reader
         if reader is None:
             return

@@ -68,6 +68,9 @@ MIN_INTERVAL_US: Final = 10_000
 """The shortest interval a ground station may ask for: 100 Hz, the configuration's ceiling."""
 _INT32_MAX: Final = 2**31 - 1  # MESSAGE_INTERVAL.interval_us is int32
 _IDLE_WAIT_S: Final = 0.25  # the sender re-checks this often (the autopilot's set may change)
+# A round this late says the sender did not run (its process starved of CPU or of the GIL): the
+# messages it missed are skipped, not caught up, so the rates dip; said in the log and counted.
+_HELD_UP_NS: Final = 500_000_000
 _JOIN_TIMEOUT_S: Final = 2.0
 
 
@@ -110,6 +113,10 @@ class TelemetryStats:
     esc_telemetry: int = 0
     errors: int = 0
     """Rounds not sent because encoding or sending raised (a bug); logged."""
+    held_up: int = 0
+    """Rounds sent over half a second late (the sender did not run meanwhile); logged."""
+    longest_hold_s: float = 0.0
+    """The greatest lateness among them, in seconds."""
 
 
 class MavlinkTelemetry:
@@ -316,6 +323,8 @@ class MavlinkTelemetry:
                     next_due[slot] = now  # a new rate starts with a message now
             last_rates = rates
             due = [s for s, rate in rates.items() if rate > 0 and now >= next_due[s]]
+            if due:
+                self._note_lateness(now - min(next_due[s] for s in due))
             if due or requested:
                 try:
                     self._send_round(due, requested, now)
@@ -336,6 +345,21 @@ class MavlinkTelemetry:
             enabled = [next_due[s] for s, rate in rates.items() if rate > 0]
             wait_ns = min(enabled) - time.monotonic_ns() if enabled else _IDLE_WAIT_S * 1e9
             self._wake.wait(max(0.0, min(wait_ns / 1e9, _IDLE_WAIT_S)))
+
+    def _note_lateness(self, late_ns: int) -> None:
+        if late_ns <= _HELD_UP_NS:
+            return
+        stats = self.stats
+        stats.held_up += 1
+        stats.longest_hold_s = max(stats.longest_hold_s, late_ns / 1e9)
+        if stats.held_up & (stats.held_up - 1) == 0:  # the 1st, 2nd, 4th, ...
+            log.warning(
+                "ESC telemetry went out %.2f s late: this process did not run (%d times so "
+                "far, the longest %.2f s); what was due meanwhile is skipped, not caught up",
+                late_ns / 1e9,
+                stats.held_up,
+                stats.longest_hold_s,
+            )
 
     def _log_autopilot_set(self) -> None:
         """Say once which set the autopilot's HEARTBEAT chose (and again if it changes)."""

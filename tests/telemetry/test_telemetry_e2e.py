@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
+import re
+import signal
 import socket
 import subprocess
 import threading
@@ -370,6 +373,48 @@ def test_gcs_on_an_extra_output_sets_the_rate(
         escs.close()
         receiver.close()
         gcs.close()
+
+
+def test_a_held_up_sender_says_so_and_skips_what_it_missed(
+    tmp_path: Path,
+    can_port: int,
+    autopilot: Autopilot,
+    start_daemon: Callable[..., Daemon],
+) -> None:
+    """The main process stopped for 1 s (SIGSTOP; on a vehicle: starved of CPU): its first
+    round after is logged as late by as much, counted in the exit summary, and the messages
+    due meanwhile are skipped, not sent in a burst."""
+    receiver = MavlinkReceiver(autopilot.conn)
+    config = tmp_path / "bridge.toml"
+    config.write_text(f"[mavlink]\n{EVERY_FAMILY}", encoding="utf-8")
+    escs = Escs(can_port, ckesc_reports([1, 2, 3, 4], set()))
+    try:
+        daemon = start_daemon("--config", str(config))
+        autopilot.start_stream(20)
+        receiver.wait_for("ESC_STATUS", lambda m: m.rpm[0] == 1000, timeout_s=STARTUP_TIMEOUT_S)
+        os.kill(daemon.proc.pid, signal.SIGSTOP)
+        time.sleep(1.0)
+        os.kill(daemon.proc.pid, signal.SIGCONT)
+        resumed = time.monotonic()
+        time.sleep(1.0)
+        assert daemon.stop() == 0
+    finally:
+        escs.close()
+        receiver.close()
+    with receiver._lock:
+        status = [t for t, m in receiver.messages if m.get_type() == "ESC_STATUS" and m.index == 0]
+    gap, after = max((b - a, b) for a, b in itertools.pairwise(status))
+    assert gap >= 0.95, f"no stop in the ESC_STATUS stream (longest gap {gap:.2f} s)"
+    # 10 Hz resumed on its grid: within 0.25 s of the first message after the stop, three at
+    # most (a catch-up would have sent the ten that were due meanwhile at once).
+    assert sum(1 for t in status if after <= t < after + 0.25) <= 3
+    assert after - resumed < 0.5, "ESC_STATUS did not come back within 0.5 s of SIGCONT"
+    late = [
+        float(s) for s in re.findall(r"ESC telemetry went out (\d+\.\d+) s late", daemon.output)
+    ]
+    assert late and max(late) >= 0.9, daemon.output
+    summary = re.search(r"(\d+) rounds held up \(the longest (\d+\.\d+) s late\)", daemon.output)
+    assert summary and int(summary.group(1)) >= 1 and float(summary.group(2)) >= max(late)
 
 
 def _zenoh_session(endpoint: str) -> zenoh.Session:
