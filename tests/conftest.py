@@ -165,6 +165,9 @@ class Observer:
         self.bus = multicast_bus(port)
         self.frames: list[tuple[float, can.Message]] = []
         self.garbage = 0  # datagrams that were not CAN frames
+        self.senders: list[Daemon] = []
+        """Daemons whose failing exit (a status over 0: a port taken, a refused configuration)
+        ends a wait at once, naming it, rather than at its timeout."""
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
@@ -210,6 +213,14 @@ class Observer:
             for ts, msg in window:
                 if ts >= after and predicate(msg):
                     return ts, msg
+            for daemon in self.senders:
+                status = daemon.proc.poll()
+                if status is not None and status > 0:
+                    daemon.stop()
+                    raise AssertionError(
+                        f"no matching frame: the daemon exited with status {status}:\n"
+                        + "\n".join(daemon.output.splitlines()[-10:])
+                    )
             time.sleep(0.005)
         raise AssertionError(f"no matching frame within {timeout_s} s")
 
@@ -434,8 +445,16 @@ def can_port() -> int:
 
 
 @pytest.fixture
-def observer(can_port: int) -> Iterator[Observer]:
+def daemons() -> list[Daemon]:
+    """The daemons :func:`start_daemon` started in this test (the :func:`observer` watches
+    them)."""
+    return []
+
+
+@pytest.fixture
+def observer(can_port: int, daemons: list[Daemon]) -> Iterator[Observer]:
     obs = Observer(can_port)
+    obs.senders = daemons
     yield obs
     obs.close()
 
@@ -453,9 +472,11 @@ def autopilot(mavlink_port: int) -> Iterator[Autopilot]:
 
 
 @pytest.fixture
-def start_daemon(can_port: int, mavlink_port: int) -> Iterator[Callable[..., Daemon]]:
+def start_daemon(
+    can_port: int, mavlink_port: int, daemons: list[Daemon]
+) -> Iterator[Callable[..., Daemon]]:
     """Start the daemon on this test's bus and link; extra CLI args may follow."""
-    started: list[Daemon] = []
+    started = daemons
 
     def start(*extra: str) -> Daemon:
         daemon = Daemon(
