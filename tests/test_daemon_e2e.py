@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import re
 import signal
 import time
@@ -307,6 +308,36 @@ def test_sigint_is_handled_like_sigterm(
     expect_throttles(observer, (0, 0, 0, 0), STARTUP_TIMEOUT_S)
     assert daemon.stop(signal.SIGINT) == 0
     assert "SIGINT: stopping" in daemon.output
+
+
+def test_a_storm_of_stop_signals_still_ends_in_the_safe_flush(
+    start_daemon: Callable[..., Daemon], autopilot: Autopilot, observer: Observer, tmp_path: Path
+) -> None:
+    """Stop signals one after another for 0.3 s, every kind, as fast as this process can send
+    them (a demo's SIGINT beside its parent-death SIGTERM, a user's repeated Ctrl-C): the
+    daemon still stops once, with its safe values, and exits 0. A handler that took a lock (an
+    Event's) while a second signal's handler ran nested in it never came back: a demo's bridge
+    was found hung so. The flush lasts 1 s, so the storm is over before the interpreter ends
+    (where a signal gets its default action back)."""
+    config = tmp_path / "bridge.toml"
+    config.write_text("[output]\nshutdown_flush_ms = 1000\n", encoding="utf-8")
+    daemon = start_daemon("--config", str(config))
+    arm_at(autopilot, [1500, 1500, 1500, 1500])
+    expect_throttles(observer, (1000, 1000, 1000, 1000), STARTUP_TIMEOUT_S)
+    sent_at = time.monotonic()
+    signals = itertools.cycle([signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGQUIT])
+    sent = 0
+    while time.monotonic() - sent_at < 0.3:
+        try:
+            os.kill(daemon.proc.pid, next(signals))
+        except ProcessLookupError:  # it ended within the storm
+            break
+        sent += 1
+    assert daemon.stop() == 0, f"after {sent} signals:\n{daemon.output}"
+    assert "stopped after sending safe values for 1000 ms" in daemon.output
+    time.sleep(0.2)  # anything still in flight
+    after = [t for ts, m in observer.frames if ts >= sent_at and (t := ckesc_throttles(m))]
+    assert after and after[-1] == (0, 0, 0, 0)
 
 
 def test_other_senders_are_ignored(

@@ -190,12 +190,14 @@ class Supervisor:
 
     def stop(self, reason: str = "") -> None:
         """Stop: the loop starts its safe flush on its next tick (the request is one store to
-        shared memory, fine from a signal handler), and the supervisor winds down, logging
-        ``reason`` (e.g. the signal's name) then: a signal handler must not log, since it may
-        interrupt the main thread inside a write to the same stream ("reentrant call")."""
+        shared memory), and the supervisor winds down, logging ``reason`` (e.g. the signal's
+        name) then. Called again (every stop signal calls it, from the thread of
+        :class:`~bridge.stopping.StopSignals`), it changes nothing."""
         self._stop_reason = self._stop_reason or reason
-        self.runner.request_stop()
+        # Stopping before the loop is asked to: the loop, done with its flush, is never taken
+        # for a loop that died.
         self._stop.set()
+        self.runner.request_stop()
 
     def _log_stop_reason(self) -> None:
         if self._stop_reason:
@@ -241,8 +243,8 @@ class Supervisor:
             while not self._stop.is_set():
                 if self.runner.wait_for_exit(SUPERVISE_PERIOD_S):
                     if self._stop.is_set() and LoopState(self.stats["state"]) == LoopState.STOPPED:
-                        # Asked to stop during the wait (the signal handler ran inside it), and
-                        # the loop ended after its own flush: a stop, not a death.
+                        # Asked to stop during the wait (a stop signal), and the loop ended
+                        # after its own flush: a stop, not a death.
                         break
                     return self._loop_died()
                 self._watch()
