@@ -145,8 +145,9 @@ def spin(
 
     Frames go out at the daemon's rate on absolute deadlines of the monotonic clock. The spin
     ends at ``plan.request.seconds`` after the first frame (the hard limit), or at once when
-    ``stop`` is set. With ``handle_signals`` (and on the main thread) SIGINT and SIGTERM set
-    ``stop`` for the duration, so Ctrl-C ends the spin without interrupting the safe values.
+    ``stop`` is set. With ``handle_signals`` (and on the main thread) SIGINT and SIGTERM end the
+    spin the same way for the duration, so Ctrl-C ends the spin without interrupting the safe
+    values.
     Afterwards safe values go to every ESC for ``shutdown_flush_ms`` (at least
     :data:`SPIN_MIN_FLUSH_MS` and one whole cycle, so every ESC gets one), also when an
     exception (from ``progress``, say) ends the spin; the exception then propagates.
@@ -173,7 +174,7 @@ def spin(
     start_ns = time.monotonic_ns()
     elapsed_s = 0.0
     try:
-        with _signals_set(stop, handle_signals):
+        with _signals_noted(handle_signals) as signalled:
             end_ns = start_ns + round(seconds * 1e9)
             next_ns = start_ns
             next_report_s = 0.0
@@ -184,7 +185,7 @@ def spin(
                 if now >= end_ns:
                     ended = "done"
                     break
-                if stop.is_set():
+                if stop.is_set() or signalled:
                     break
                 fraction = ramp_fraction(elapsed_s, seconds, ramp_s, target)
                 fractions[index] = fraction
@@ -215,7 +216,7 @@ def spin(
         frames_sent = sender.sent
         sender.sent = 0
         try:
-            with _signals_set(stop, handle_signals):
+            with _signals_noted(handle_signals):
                 if sender.gone:  # one more try on a fresh handle: the safe values matter most
                     reader.close()
                     bus.shutdown()
@@ -269,18 +270,22 @@ class _Sender:
 
 
 @contextlib.contextmanager
-def _signals_set(stop: threading.Event, enabled: bool) -> Iterator[None]:
-    """While inside: SIGINT and SIGTERM set ``stop`` instead of raising or ending the process
-    (main thread only; elsewhere signals are not ours to take)."""
+def _signals_noted(enabled: bool) -> Iterator[list[int]]:
+    """While inside: SIGINT and SIGTERM are noted in the list given (the spin looks at it every
+    tick) instead of raising or ending the process (main thread only; elsewhere signals are
+    not ours to take). The handler only appends: a handler runs between two bytecodes of the
+    main thread, which may hold the lock of the Event the spin waits on, and setting that
+    Event from there would wait for it for good."""
+    noted: list[int] = []
     if not enabled or threading.current_thread() is not threading.main_thread():
-        yield
+        yield noted
         return
     previous = {
-        sig: signal.signal(sig, lambda _signum, _frame: stop.set())
+        sig: signal.signal(sig, lambda signum, _frame: noted.append(signum))
         for sig in (signal.SIGINT, signal.SIGTERM)
     }
     try:
-        yield
+        yield noted
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -4,6 +4,7 @@ observer."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import signal
@@ -246,6 +247,34 @@ def test_sigint_mid_spin_sends_safe_values_then_exits(
     assert first_safe - signalled < 0.1
     after = [t for m in observer.since(first_safe) if (t := throttles(m)) is not None]
     assert set(after) == {(0, 0, 0, 0)} and len(after) >= 60
+
+
+def test_a_storm_of_signals_mid_spin_still_ends_in_safe_values(
+    observer: Observer, ckesc_sim: Simulator, bus_args: list[str], tmp_path: Path
+) -> None:
+    """SIGINT and SIGTERM as fast as this process sends them for 0.3 s (repeated Ctrl-C): the
+    spin ends once, safe values follow, exit status 130. A handler that set the Event the spin
+    waits on could wait for good for the Event's lock, held by the main thread it interrupted.
+    The flush lasts 1 s, so the storm is over before the spin gives the signals their default
+    action back."""
+    config = tmp_path / "spin.toml"
+    config.write_text("[output]\nshutdown_flush_ms = 1000\n", encoding="utf-8")
+    proc = spin(
+        "--motor", "4", "--throttle", "20", "--seconds", "10", "--props-removed",
+        "--config", str(config), *bus_args,
+    )  # fmt: skip
+    observer.wait_for(lambda m: throttles(m) == (0, 0, 0, 400), 10.0)
+    signalled = time.monotonic()
+    signals = itertools.cycle([signal.SIGINT, signal.SIGTERM])
+    while time.monotonic() - signalled < 0.3:
+        proc.send_signal(next(signals))
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130, err
+    assert "motor 4 stopped, safe values sent: interrupted" in out
+    time.sleep(0.2)
+    first_safe, _ = observer.wait_for(lambda m: throttles(m) == (0, 0, 0, 0), 1.0, signalled)
+    after = [t for m in observer.since(first_safe) if (t := throttles(m)) is not None]
+    assert set(after) == {(0, 0, 0, 0)}
 
 
 @pytest.mark.parametrize(
