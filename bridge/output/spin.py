@@ -173,8 +173,10 @@ def spin(
     tick = 0
     start_ns = time.monotonic_ns()
     elapsed_s = 0.0
-    try:
-        with _signals_noted(handle_signals) as signalled:
+    # One set of handlers from the first frame to the last safe value: between two, a signal
+    # would get its default action (KeyboardInterrupt) in the middle of the stop.
+    with _signals_noted(handle_signals) as signalled:
+        try:
             end_ns = start_ns + round(seconds * 1e9)
             next_ns = start_ns
             next_report_s = 0.0
@@ -212,11 +214,10 @@ def spin(
                 delay_ns = min(next_ns, end_ns) - time.monotonic_ns()
                 if delay_ns > 0:
                     stop.wait(delay_ns / 1e9)
-    finally:
-        frames_sent = sender.sent
-        sender.sent = 0
-        try:
-            with _signals_noted(handle_signals):
+        finally:
+            frames_sent = sender.sent
+            sender.sent = 0
+            try:
                 if sender.gone:  # one more try on a fresh handle: the safe values matter most
                     reader.close()
                     bus.shutdown()
@@ -224,9 +225,9 @@ def spin(
                         bus = sender.reopen(open_bus(config.can, config.bitrate))
                 flush_ms = max(config.output.shutdown_flush_ms, SPIN_MIN_FLUSH_MS)
                 flush_safe_values(sender.send, driver, period_ns, flush_ms, tick)
-        finally:
-            reader.close()
-            bus.shutdown()
+            finally:
+                reader.close()
+                bus.shutdown()
     heard = table.snapshot(time.monotonic_ns())[index]
     return SpinResult(
         ended,
