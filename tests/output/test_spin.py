@@ -58,13 +58,29 @@ def ckesc_sim(can_port: int) -> Iterator[Simulator]:
     sim.close()
 
 
+_STARTED: list[subprocess.Popen[str]] = []
+
+
 def spin(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [ESC_BRIDGE, "esc", "spin", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+    _STARTED.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def _no_spin_left_running() -> Iterator[None]:
+    """A spin a failed test left running (one that hung past its wait) is killed with it."""
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def throttles(msg: can.Message) -> tuple[int, ...] | None:
