@@ -7,17 +7,17 @@ installs :class:`StopSignals` before it does anything else (parsing, imports, th
 configuration); a signal that arrives before the daemon is up is kept and acted on once it is,
 and a command other than ``run`` gets the signal's default behaviour back, the signal included.
 
-The handler itself only notes the signal and writes its number to a pipe; the callbacks run in
-a thread of their own that reads it. A Python signal handler runs in the main thread between two
-of its bytecodes, possibly while that thread holds a lock a callback takes (a
-:class:`threading.Event`'s, to wake the supervisor's threads), and a signal that arrives while
-a handler runs nests a second handler in the first: a demo's bridge that got SIGINT and SIGTERM
-together was found hung so, the second handler waiting for the lock the first held.
+The callbacks run in a thread of their own, woken through :func:`signal.set_wakeup_fd` (Python's
+C-level handler writes each signal's number to a pipe); the Python handler only notes the first
+signal. A Python handler runs in the main thread between two of its bytecodes, possibly while
+that thread holds a lock a callback takes (a :class:`threading.Event`'s, to wake the
+supervisor's threads), and a signal that arrives while a handler runs nests a second handler in
+the first: a demo's bridge that got SIGINT and SIGTERM together was found hung so, the second
+handler waiting for the lock the first held.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import threading
@@ -31,6 +31,7 @@ STOP_SIGNALS: tuple[signal.Signals, ...] = (
     signal.SIGQUIT,
     signal.SIGINT,
 )
+_BY_NUMBER: dict[int, signal.Signals] = {int(sig): sig for sig in STOP_SIGNALS}
 
 
 class StopSignals:
@@ -41,10 +42,8 @@ class StopSignals:
         self.received: signal.Signals | None = None
         self._callbacks: list[Callable[[signal.Signals], None]] = []
         self._previous: dict[signal.Signals, Any] = {}
-        self._handling = False
         self._pending, self._notify = os.pipe()
-        # A storm of signals fills the pipe: the ones it cannot take say nothing new.
-        os.set_blocking(self._notify, False)
+        os.set_blocking(self._notify, False)  # as set_wakeup_fd requires
         self._thread = threading.Thread(target=self._run, name="stop-signals", daemon=True)
 
     @classmethod
@@ -52,29 +51,25 @@ class StopSignals:
         """Catch the stop signals from now on (main thread only, as Python requires)."""
         stop = cls()
         stop._thread.start()
+        # A storm of signals fills the pipe: the numbers it cannot take say nothing new.
+        signal.set_wakeup_fd(stop._notify, warn_on_full_buffer=False)
         stop._previous = {sig: signal.signal(sig, stop._on_signal) for sig in STOP_SIGNALS}
         return stop
 
     def _on_signal(self, signum: int, _frame: FrameType | None) -> None:
-        # Nothing here may take a lock: plain stores and a write to the pipe. A signal whose
-        # handler runs nested in this one says no more than this one does: it returns, so that a
-        # storm of signals cannot nest handlers until Python's recursion limit.
-        if self._handling:
-            return
-        self._handling = True
-        try:
-            if self.received is None:
-                self.received = signal.Signals(signum)
-            with contextlib.suppress(BlockingIOError):
-                os.write(self._notify, bytes((signum,)))
-        finally:
-            self._handling = False
+        # A store and a lookup, nothing that takes a lock or calls into Python code (in which a
+        # storm of signals would nest handlers): the wakeup pipe has the number already.
+        if self.received is None:
+            self.received = _BY_NUMBER[signum]
 
     def _run(self) -> None:
         while signums := os.read(self._pending, 256):
             for signum in signums:
+                sig = _BY_NUMBER.get(signum)
+                if sig is None:  # a signal with another Python handler: not ours
+                    continue
                 for callback in tuple(self._callbacks):
-                    callback(signal.Signals(signum))
+                    callback(sig)
 
     def on_stop(self, callback: Callable[[signal.Signals], None]) -> None:
         """Call ``callback`` on every stop signal from now on, and at once if one came."""
@@ -85,6 +80,7 @@ class StopSignals:
     def release(self) -> None:
         """Give the signals their previous handlers back; a signal caught meanwhile is raised
         again, so it does what it would have done (end the process, or KeyboardInterrupt)."""
+        signal.set_wakeup_fd(-1)
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous = {}

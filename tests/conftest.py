@@ -12,6 +12,7 @@ import fcntl
 import itertools
 import multiprocessing
 import os
+import re
 import signal
 import socket
 import struct
@@ -20,7 +21,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -437,6 +438,22 @@ class Daemon:
             out, _ = self.proc.communicate()
         self.output += out or ""
         return self.proc.returncode
+
+
+@dataclass(frozen=True)
+class Holds:
+    """What a daemon's exit summary says of its ESC telemetry sender's hold-ups."""
+
+    count: int
+    longest_s: float
+
+
+def holds_of(daemon: Daemon) -> Holds:
+    """The hold-ups ``daemon`` reported (stopping it first: the exit summary says them)."""
+    assert daemon.stop() == 0, daemon.output
+    found = re.search(r"(\d+) rounds held up \(the longest (\d+\.\d+) s late\)", daemon.output)
+    assert found, f"no ESC telemetry summary in the daemon's output:\n{daemon.output}"
+    return Holds(int(found.group(1)), float(found.group(2)))
 
 
 @pytest.fixture

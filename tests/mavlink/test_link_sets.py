@@ -18,7 +18,6 @@ each cut to the longest hold it reported, are taken out of the window (:func:`me
 from __future__ import annotations
 
 import itertools
-import re
 import subprocess
 import threading
 import time
@@ -28,7 +27,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ESC_BRIDGE, Autopilot, Daemon, MavlinkReceiver, free_port, multicast_bus
+from conftest import (
+    ESC_BRIDGE,
+    Autopilot,
+    Daemon,
+    Holds,
+    MavlinkReceiver,
+    free_port,
+    holds_of,
+    multicast_bus,
+)
 from pymavlink import mavutil
 
 from bridge.escs.ckesc import codec, records
@@ -125,22 +133,6 @@ def start(tmp_path: Path, start_daemon: Callable[..., Daemon], mavlink: str, *ex
 class Rate:
     hz: float
     longest_gap_s: float  # between two messages in the window, or from its ends: what a stall took
-
-
-@dataclass(frozen=True)
-class Holds:
-    """What the daemon's exit summary says of its ESC telemetry sender's hold-ups."""
-
-    count: int
-    longest_s: float
-
-
-def holds_of(daemon: Daemon) -> Holds:
-    """The hold-ups the daemon reported (stopping it first: the exit summary says them)."""
-    assert daemon.stop() == 0, daemon.output
-    found = re.search(r"(\d+) rounds held up \(the longest (\d+\.\d+) s late\)", daemon.output)
-    assert found, f"no ESC telemetry summary in the daemon's output:\n{daemon.output}"
-    return Holds(int(found.group(1)), float(found.group(2)))
 
 
 @dataclass(frozen=True)
