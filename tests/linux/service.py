@@ -11,6 +11,7 @@ timeout (the guest stands still while the host runs others), no Zenoh (nothing l
 from __future__ import annotations
 
 import re
+import time
 from pathlib import Path
 
 from pymavlink import mavutil
@@ -29,6 +30,7 @@ AUTOPILOT_PORT = 14550  # the configuration's udpin
 AUTOPILOT_HZ = 20
 PWM = [1100, 1350, 1600, 1850]  # four outputs, four values
 START_TIMEOUT_S = 240.0  # a start of the service in the guest, on a loaded host
+STREAMING_S = 2 / AUTOPILOT_HZ  # the autopilot's newest output at most this old: streaming
 
 
 def vehicle_config() -> str:
@@ -120,15 +122,23 @@ def running(other_than: int = 0) -> tuple[int, int]:
 
 
 def armed() -> tuple[guest.Autopilot, guest.Candump]:
-    """The autopilot armed at PWM and candump on can0, once the bridge sends the outputs."""
+    """The autopilot armed at PWM and candump on can0, once the bridge sends the outputs and
+    the autopilot is streaming them: its newest output delivered under STREAMING_S ago and the
+    newest command on can0 carrying it. What a test does next (a kill, a stop) then meets a
+    bridge sending armed outputs, not one gone to its failsafe because the test's autopilot,
+    a thread in a one-CPU guest, fell quiet for a while (seen once: 1.2 s)."""
     dump = guest.Candump("can0")
     pilot = guest.Autopilot(AUTOPILOT_PORT, stack=mavutil.mavlink.MAV_AUTOPILOT_PX4)
     pilot.pwm = list(PWM)
     pilot.armed = True
     pilot.start_stream(AUTOPILOT_HZ)
-    guest.wait_until(
-        lambda: any(throttles(line) == ARMED for line in dump.lines()),
-        START_TIMEOUT_S,
-        "the autopilot's outputs on can0",
-    )
+
+    def streaming() -> bool:
+        delivered = pilot.delivered
+        if not delivered or time.time() - delivered[-1] > STREAMING_S:
+            return False
+        newest = next((t for t in map(throttles, reversed(dump.lines())) if t is not None), None)
+        return newest == ARMED
+
+    guest.wait_until(streaming, START_TIMEOUT_S, "the autopilot's outputs on can0")
     return pilot, dump

@@ -74,9 +74,15 @@ def kill_main() -> dict[str, Any]:
         "old_main": old_main,
         "new_main": new_main,
         "killed": killed,
+        "pilot_gaps": gaps(pilot.sent),
         "service": service.show(),
         "frames": dump.stop(),
     }
+
+
+def gaps(sent: list[float]) -> list[tuple[float, float]]:
+    """The autopilot's gaps over 0.2 s between outputs: (when, how long)."""
+    return [(a, round(b - a, 3)) for a, b in itertools.pairwise(sent) if b - a > 0.2]
 
 
 def stop() -> dict[str, Any]:
@@ -91,6 +97,7 @@ def stop() -> dict[str, Any]:
         pilot.close()
     return {
         "stopped": stopped,
+        "pilot_gaps": gaps(pilot.sent),
         "service": service.show(),
         "frames": dump.stop(),
         "journal": service.journal(),
@@ -192,7 +199,7 @@ def test_a_killed_main_process_leaves_safe_values_and_it_comes_back(
     frames = sent(killed["frames"])
     before = [t for when, t in frames if when < killed["killed"]]
     after = [(when, t) for when, t in frames if when >= killed["killed"]]
-    assert before and before[-1] == ARMED, before[-5:]
+    assert before and before[-1] == ARMED, (before[-5:], killed["pilot_gaps"])
     first_safe = next(i for i, (_, t) in enumerate(after) if t == SAFE)
     assert all(t == ARMED for _, t in after[:first_safe])
     back = next(when for when, t in after[first_safe:] if t == ARMED)
@@ -214,7 +221,7 @@ def test_systemctl_stop_flushes_safe_values_and_exits_zero(stopped: dict[str, An
     frames = sent(stopped["frames"])
     before = [t for when, t in frames if when < stopped["stopped"]]
     after = [t for when, t in frames if when >= stopped["stopped"]]
-    assert before and before[-1] == ARMED, before[-5:]
+    assert before and before[-1] == ARMED, (before[-5:], stopped["pilot_gaps"])
     first_safe = after.index(SAFE)
     assert all(t == ARMED for t in after[:first_safe])
     assert all(t == SAFE for t in after[first_safe:])
