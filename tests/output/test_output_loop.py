@@ -59,12 +59,14 @@ def _throttles(observer: can.BusABC, count: int) -> list[tuple[int, ...]]:
 def loop_on_virtual_bus(
     request: pytest.FixtureRequest,
 ) -> Iterator[tuple[int, LoopStats]]:
+    """The loop running in a thread; ``request.param``: more of its ``[output]`` settings."""
     channel = f"loop-{request.node.name}"
     port = free_port()
+    output = {"realtime_priority": 0, "loop": "thread", **getattr(request, "param", {})}
     raw = {
         "mavlink": {"url": f"udpin:127.0.0.1:{port}"},
         "can": {"interface": "virtual", "channel": channel},
-        "output": {"realtime_priority": 0, "loop": "thread"},
+        "output": output,
         "zenoh": {"enabled": False},
     }
     checked = plan(build_config(raw, "test"))
@@ -111,6 +113,34 @@ def test_the_loop_reads_the_autopilot_itself_and_sends_the_mix(
     finally:
         autopilot.close()
         observer.shutdown()
+
+
+@pytest.mark.parametrize(
+    "loop_on_virtual_bus", [{"rate_hz": 1, "input_timeout_ms": 1000}], indirect=True
+)
+def test_at_a_fixed_rate_an_input_is_taken_as_it_arrives_not_at_the_tick(
+    loop_on_virtual_bus: tuple[int, LoopStats],
+) -> None:
+    """At 1 Hz, an input sent just after a tick is read and mixed within half a second, with
+    no tick between: a tick only decides and sends, the same work every tick, so its frames
+    leave at even intervals."""
+    port, stats = loop_on_virtual_bus
+    autopilot = Autopilot(port)
+    try:
+        ticks = stats["ticks"]
+        deadline = time.monotonic() + 5
+        while stats["ticks"] == ticks and time.monotonic() < deadline:
+            time.sleep(0.001)
+        ticks = stats["ticks"]  # one just happened: the next is a second away
+        sent = time.monotonic()
+        autopilot.servo_output_raw(PWM)
+        while stats["input_outputs"] == 0 and time.monotonic() < sent + 5:
+            time.sleep(0.001)
+        took_s = time.monotonic() - sent
+        assert stats["input_outputs"] == 1
+        assert (stats["ticks"], took_s < 0.5) == (ticks, True), took_s
+    finally:
+        autopilot.close()
 
 
 # -- one tick at a time --------------------------------------------------------------------
