@@ -43,6 +43,7 @@ from bridge.can_errors import ControllerErrors, ControllerState, decode_error_fr
 from bridge.can_io import receive_drops
 from bridge.errors import BridgeError, CodecError
 from bridge.escs.family import CommandSeen, EscFamily
+from bridge.multicast_receive import MulticastReceiver, receives_multicast
 from bridge.telemetry.state import EscSnapshot, EscTable, LastCommand
 
 log = logging.getLogger(__name__)
@@ -187,6 +188,7 @@ class CanReader:
         self._drops_bus: can.BusABC | None = None
         self._drops_before = 0
         self._drops_current = 0
+        self._multicast: MulticastReceiver | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="can-reader", daemon=True)
 
@@ -200,6 +202,13 @@ class CanReader:
             self._thread.join(JOIN_TIMEOUT_S)
 
     def _run(self) -> None:
+        try:
+            self._read_until_closed()
+        finally:
+            if self._multicast is not None:
+                self._multicast.close()
+
+    def _read_until_closed(self) -> None:
         failures = 0
         next_sample_ns = 0
         while not self._stop.is_set():
@@ -208,7 +217,9 @@ class CanReader:
                 self._stop.wait(RECV_TIMEOUT_S)
                 continue
             try:
-                msg = bus.recv(RECV_TIMEOUT_S)
+                recv = self._recv_of(bus)
+                dropped_before = self._dropped()
+                msg = recv(RECV_TIMEOUT_S)
             except (can.CanError, OSError) as exc:
                 self.stats.read_errors += 1
                 failures += 1
@@ -222,27 +233,54 @@ class CanReader:
                 continue
             failures = 0
             now_ns = time.monotonic_ns()
-            emptied = False
+            # A multicast receiver's read of refused frames only may have emptied the queue.
+            emptied = msg is None and self._dropped() != dropped_before and self._drained()
             if msg is not None:
                 self.handle(msg, now_ns)
-                emptied = self._drain(bus)
+                emptied = self._drain(recv)
             if now_ns >= next_sample_ns:
                 next_sample_ns = now_ns + DROPS_SAMPLE_PERIOD_NS
                 self._sample_drops(bus)
             if emptied:
                 self._stop.wait(COALESCE_S)
 
-    def _drain(self, bus: can.BusABC) -> bool:
+    def _recv_of(self, bus: can.BusABC) -> Callable[[float | None], can.Message | None]:
+        """What reads ``bus``: its own ``recv``, or where the reader filters a ``udp_multicast``
+        handle itself, a :class:`~bridge.multicast_receive.MulticastReceiver` that drops the
+        frames the filters refuse before unpacking them (the bridge's own commands).
+
+        Raises:
+            OSError: the handle was shut down.
+        """
+        if self._filters is None or not receives_multicast(bus):
+            return bus.recv
+        receiver = self._multicast
+        if receiver is None or receiver.bus is not bus:
+            if receiver is not None:
+                receiver.close()
+            receiver = self._multicast = MulticastReceiver(bus, self._wanted)
+        return receiver.recv
+
+    def _dropped(self) -> int:
+        """Frames the multicast receiver read and dropped (0 without one)."""
+        return 0 if self._multicast is None else self._multicast.dropped
+
+    def _drained(self) -> bool:
+        """Whether a read that found nothing emptied the queue: python-can's ``recv`` says
+        nothing more; a multicast receiver tells an empty queue from a flood's many drops."""
+        return self._multicast is None or self._multicast.drained
+
+    def _drain(self, recv: Callable[[float | None], can.Message | None]) -> bool:
         """Handle what else is queued, without waiting; True when the queue was emptied (a
         read error is left to the next wait)."""
-        recv, handle = bus.recv, self.handle
+        handle = self.handle
         for _ in range(MAX_FRAMES_PER_WAKE):
             try:
                 msg = recv(0)
             except (can.CanError, OSError):
                 return False
             if msg is None:
-                return True
+                return self._drained()
             handle(msg, time.monotonic_ns())
         return False
 
@@ -275,13 +313,16 @@ class CanReader:
         are the controller's, never filtered here)."""
         if msg.is_error_frame or self._filters is None:
             return True
-        can_id, extended = msg.arbitration_id, msg.is_extended_id
+        return self._wanted(msg.arbitration_id, msg.is_extended_id)
+
+    def _wanted(self, can_id: int, extended: bool) -> bool:
+        """Whether one of the reader's filters passes a frame of ``can_id`` (given filters)."""
         key = can_id | extended << 29
         passed = self._decided.get(key)
         if passed is None:
             passed = any(
                 (want is None or want == extended) and (can_id ^ wanted_id) & mask == 0
-                for wanted_id, mask, want in self._filters
+                for wanted_id, mask, want in self._filters or ()
             )
             if len(self._decided) >= DECIDED_IDS:
                 self._decided.clear()
