@@ -1,6 +1,7 @@
 """The CAN edge: opening python-can buses from the config, choosing what each handle receives,
 counting what the kernel dropped for it, and telling passing send failures from a bus that is
-gone. The only module besides the codecs that imports python-can's buses.
+gone. The only module besides the codecs (and :mod:`bridge.multicast_receive`, which reads a
+``udp_multicast`` handle's socket for the CAN reader) that imports python-can's buses.
 
 What a handle receives (``open_bus(receive=...)``) matters under load: every frame a socket
 is subscribed to costs the kernel a copy and a queue slot, and costs the process a wake-up, a

@@ -145,8 +145,9 @@ class CanReader:
     kernel filters, so a flood of other traffic costs the reader nothing. On interfaces without
     kernel filtering (udp_multicast, virtual) the reader is given the filters and applies them
     itself: the frames they refuse never reach the recorder, the decoders or :attr:`stats`,
-    but the reader still reads each one, so a flood still costs it CPU, and when it cannot
-    keep up the kernel drops frames (telemetry among them) and counts them in
+    but the reader still reads each one (on udp_multicast without unpacking it:
+    :mod:`bridge.multicast_receive`), so a flood still costs it CPU, and when it cannot keep
+    up the kernel drops frames (telemetry among them) and counts them in
     :attr:`ReaderStats.kernel_drops`.
     """
 
