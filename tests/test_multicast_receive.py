@@ -4,6 +4,7 @@ it returns is what python-can's own ``recv`` would, less the frames ``passes`` r
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 from collections.abc import Iterator
@@ -14,8 +15,9 @@ import pytest
 from can.interfaces.udp_multicast.utils import pack_message
 from conftest import MULTICAST_GROUP, free_port, multicast_bus
 
-from bridge.multicast_receive import MulticastReceiver, receives_multicast
+from bridge.multicast_receive import MAX_DROPPED_PER_CALL, MulticastReceiver, receives_multicast
 
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 WANTED = 0x10F1  # the one ID (extended) the receivers here take
 REFUSED = 0x4E2  # an ID they do not
 
@@ -164,3 +166,22 @@ def test_refused_frames_end_the_wait_an_empty_queue_does_not(link: Link) -> None
     started = time.monotonic()
     assert link.receiver.recv(0.3) is None
     assert time.monotonic() - started >= 0.3
+
+
+def test_a_flood_of_refused_frames_ends_a_call_before_the_queue_does(link: Link) -> None:
+    """MAX_DROPPED_PER_CALL refused frames end a call (the reader then looks at its other
+    duties), not drained; the next call drops the rest and finds the queue empty."""
+    flood = MAX_DROPPED_PER_CALL + MAX_DROPPED_PER_CALL // 2
+    with socket.socket(fileno=os.dup(link.bus.fileno())) as sock:
+        try:  # room for the whole flood: past net.core.rmem_max, which only root may do
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 8 << 20)
+        except PermissionError:
+            pytest.skip("needs root (SO_RCVBUFFORCE) to queue the flood")
+    datagram = pack_message(can.Message(arbitration_id=REFUSED, is_extended_id=False))
+    for _ in range(flood):
+        link.send_raw(datagram)
+    time.sleep(0.2)
+    assert link.receiver.recv(0) is None
+    assert (link.receiver.dropped, link.receiver.drained) == (MAX_DROPPED_PER_CALL, False)
+    assert link.receiver.recv(0) is None
+    assert (link.receiver.dropped, link.receiver.drained) == (flood, True)
