@@ -406,37 +406,20 @@ class OutputLoop:
         last_input_ns = next_ns - min_gap_ns  # the last tick an input started
         while True:
             delay_ns = next_ns - monotonic_ns()
-            if not immediate:
-                # Fixed rate: wait for the tick, taking each input (and what the main process
-                # relays) as it arrives, so that the tick only decides and sends: the same
-                # work every tick, and frames that leave at even intervals. Reading and mixing
-                # an input at the tick instead made every tick with one later than those
-                # without by that work (a period error of about 100 µs at p50, against
-                # about 25: bench/cpu.py), for a wake-up less per input.
-                if delay_ns > 0:
-                    link_fd = input_side.fd
-                    relay_fd = relay.fileno() if relay is not None and self._relay_open else -1
-                    readers = [fd for fd in (link_fd, relay_fd) if fd is not None and fd >= 0]
-                    ready = wait(readers, (), (), delay_ns / 1e9)[0]
-                    if ready:
-                        now = monotonic_ns()
-                        if link_fd in ready:
-                            input_side.on_readable(now)
-                        self._exchange_with_main(now, relay_ready=relay_fd in ready)
-                        continue  # the tick keeps its time
-                now = monotonic_ns()
-                if delay_ns <= 0:
-                    input_side.on_readable(now)  # no wait: take what arrived meanwhile
-                self._exchange_with_main(now, relay_ready=delay_ns <= 0)
-            elif delay_ns > 0:
-                # Immediate: wait for input, a frame to relay or the tick, whichever comes first.
+            if delay_ns > 0:
+                # Wait for input, a frame to relay or the tick, whichever comes first. Each
+                # input is taken as it arrives, so that a tick only decides and sends: the same
+                # work every tick, and at a fixed rate frames that leave at even intervals.
+                # Reading and mixing an input at the tick instead made every tick with one
+                # later than those without by that work (a period error of about 100 µs at
+                # p50, against about 25: bench/cpu.py), for a wake-up less per input.
                 link_fd = input_side.fd
                 relay_fd = relay.fileno() if relay is not None and self._relay_open else -1
                 readers = [fd for fd in (link_fd, relay_fd) if fd is not None and fd >= 0]
                 writers = [link_fd] if link_fd is not None and input_side.wants_write else []
-                ready = wait(readers, writers, (), delay_ns / 1e9)[0]
+                ready, writable, _ = wait(readers, writers, (), delay_ns / 1e9)
                 now = monotonic_ns()
-                if link_fd in ready and input_side.on_readable(now):
+                if link_fd in ready and input_side.on_readable(now) and immediate:
                     # Fresh input goes out now, or as soon as the frame-rate cap allows: never
                     # within min_gap of the last input's frame, so an input flood cannot flood
                     # the bus. A keep-alive just before it does not hold it back: keep-alives
@@ -446,11 +429,17 @@ class OutputLoop:
                     # is not made to wait for the cap.
                     next_ns = min(next_ns, max(now, last_input_ns + min_gap_ns))
                     input_tick = True
-                main_gone = not self._exchange_with_main(now)
-                if now < next_ns and not main_gone:
+                main_gone = not self._exchange_with_main(now, relay_ready=relay_fd in ready)
+                # Woken before the tick: wait again (a main process gone starts the flush now).
+                # A wait that timed out is the tick, even a µs early (the timeout's rounding):
+                # waiting again for that µs costs a system call and makes the tick later.
+                if now < next_ns and (ready or writable) and not main_gone:
                     continue
             else:
+                # No wait (the tick is due or late): take what arrived meanwhile.
                 now = monotonic_ns()
+                input_side.on_readable(now)
+                self._exchange_with_main(now)
             if not tick(now, next_ns):
                 return
             if input_tick:
