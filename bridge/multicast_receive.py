@@ -73,7 +73,8 @@ class MulticastReceiver:
         """Frames read and dropped: refused (most without being unpacked), or CAN FD frames
         on a handle without CAN FD (python-can drops those too)."""
         self.drained = False
-        """Whether the last :meth:`recv` that returned None found the queue empty."""
+        """Whether the last :meth:`recv` that returned None ended on an empty queue (not on
+        MAX_DROPPED_PER_CALL)."""
 
     def recv(self, timeout_s: float | None) -> can.Message | None:
         """The next frame ``passes`` accepts, reading and dropping the others (counted in
@@ -97,14 +98,13 @@ class MulticastReceiver:
                 )
             except BlockingIOError:
                 left_s = None if deadline is None else deadline - time.monotonic()
-                if self.dropped != dropped_before or (left_s is not None and left_s <= 0):
+                if (
+                    self.dropped != dropped_before
+                    or (left_s is not None and left_s <= 0)
+                    or not self._wait_readable(left_s)
+                ):
                     self.drained = True
                     return None
-                try:
-                    if not select.select([sock], (), (), left_s)[0]:
-                        return None
-                except OSError as exc:
-                    raise can.CanOperationError(f"cannot wait for the bus: {exc}") from exc
                 continue
             except OSError as exc:
                 raise can.CanOperationError(f"cannot read the bus: {exc}") from exc
@@ -128,6 +128,17 @@ class MulticastReceiver:
 
     def close(self) -> None:
         self._socket.close()
+
+    def _wait_readable(self, timeout_s: float | None) -> bool:
+        """Whether a datagram came within ``timeout_s``.
+
+        Raises:
+            can.CanOperationError: the wait failed.
+        """
+        try:
+            return bool(select.select([self._socket], (), (), timeout_s)[0])
+        except OSError as exc:
+            raise can.CanOperationError(f"cannot wait for the bus: {exc}") from exc
 
     def _unpack(self, data: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message | None:
         """The whole frame, stamped with the kernel's receive time; None for a CAN FD frame on
