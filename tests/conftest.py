@@ -139,8 +139,11 @@ def can_args(can_port: int) -> list[str]:
     ]
 
 
-def multicast_bus(port: int) -> can.BusABC:
-    return can.Bus(interface="udp_multicast", channel=MULTICAST_GROUP, port=port, hop_limit=0)
+def multicast_bus(port: int, fd: bool = True) -> can.BusABC:
+    """A handle on the udp_multicast bus of ``port``; ``fd``: CAN FD (python-can's default)."""
+    return can.Bus(
+        interface="udp_multicast", channel=MULTICAST_GROUP, port=port, hop_limit=0, fd=fd
+    )
 
 
 def wall_minus_monotonic() -> float:

@@ -33,9 +33,7 @@ class Link:
     def __init__(self, port: int, fd: bool = True) -> None:
         """``fd``: the receiving handle's CAN FD (python-can's default: on)."""
         self.port = port
-        self.bus = can.Bus(
-            interface="udp_multicast", channel=MULTICAST_GROUP, port=port, hop_limit=0, fd=fd
-        )
+        self.bus = multicast_bus(port, fd)
         self.receiver = MulticastReceiver(self.bus, wanted)
         self.sender = multicast_bus(port)
         self.raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
