@@ -224,6 +224,13 @@ class EscDriver(Protocol):
         are the driver's until its next call, which may reuse them: send them before then."""
         ...
 
+    def prepare(self, fractions: Sequence[float]) -> None:
+        """Make now, between ticks, what :meth:`tick_frames` will need for ``fractions``: the
+        loop calls this with each new input's commands, so that a tick only stamps and sends.
+        A driver whose frames differ every tick whatever the input does nothing here. Raises
+        what :meth:`tick_frames` would (the tick then makes them again and fails safe)."""
+        ...
+
     def safe_frames(self, tick: int) -> list[can.Message]:
         """Frames for ``tick`` commanding the safe output (motors stopped)."""
         ...

@@ -3,7 +3,8 @@
 One thread, in a process of its own where the bus allows it, with SCHED_FIFO priority when
 permitted, owns everything between the autopilot and the ESCs: the autopilot's link (read and
 decoded by :class:`~bridge.output.autopilot_input.AutopilotInput`, which mixes each input as it
-arrives), the safety decision (:func:`bridge.output.safety.decide`) and the CAN transmit handle.
+arrives; the ESC driver then makes its frames, so that a tick only decides and sends), the
+safety decision (:func:`bridge.output.safety.decide`) and the CAN transmit handle.
 Nothing else runs there, so nothing else can hold it up: telemetry, Zenoh, logging and ground
 station commands live in the main process, which may stall without consequence.
 
@@ -28,6 +29,7 @@ log and report.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
@@ -187,6 +189,17 @@ class CommandSelector:
         self.sent_kind = SENT_SAFE
         return driver.safe_frames(tick)
 
+    def prepare(self, fractions: list[float] | None) -> None:
+        """Have the driver make a new input's frames now, between ticks, when the next tick
+        would send them as they are (running, no slew rates): that tick then only stamps and
+        sends them. Decides nothing: the tick still does."""
+        if fractions is None or self.state != LoopState.RUNNING or self._slewing:
+            return
+        # Any fault is the tick's to meet: it makes them again, and sends the safe values if
+        # it cannot.
+        with contextlib.suppress(Exception):
+            self.driver.prepare(fractions)
+
     def _spin(self, index: int) -> None:
         """Make ``index`` the motor under test (-1: none), the others at 0."""
         if index != self.test_index:
@@ -334,9 +347,7 @@ class OutputLoop:
         newest input's commands, a motor test from the main process, or the safe values) goes
         on the bus, and the counters follow. False when the shutdown flush is over."""
         counters = self._counters
-        n = counters[self._i_lateness_count]
-        self._lateness[n % LATENESS_RING] = (now_ns - due_ns) // 1000
-        counters[self._i_lateness_count] = n + 1
+        late_us = (now_ns - due_ns) // 1000
         tick = self._tick
         parent = self._parent
         if not self._stop_at_ns and (
@@ -368,6 +379,17 @@ class OutputLoop:
                 tick, sending_ns, self._input.fractions, (sending_ns - now_ns) / 1e9
             )
             now_ns = sending_ns
+        # The frames first, the bookkeeping after: the work between the wake-up and the send
+        # is the same every tick, so frames leave at even intervals.
+        counters[self._i_sent] += self._send(frames, now_ns)
+        if frames and time.monotonic_ns() - now_ns > self._period_ns:
+            # Held up between the last look at the clock and the frames' leaving (its CPU
+            # taken between two instructions): nothing in the process can prevent that, but
+            # the frames carried a decision over a period old, so it is counted and logged.
+            counters[self._i_left_late] += 1
+        n = counters[self._i_lateness_count]
+        self._lateness[n % LATENESS_RING] = late_us
+        counters[self._i_lateness_count] = n + 1
         sent = selector.sent_fractions
         if sent is not self._shared_fractions or selector.sent_kind != self._shared_kind:
             # What goes out changed (a new input, a motor test, safe values): a new list.
@@ -379,12 +401,6 @@ class OutputLoop:
         counters[self._i_state] = state
         counters[self._i_test_motor] = selector.test_index + 1
         counters[self._i_tick_errors] = selector.faults
-        counters[self._i_sent] += self._send(frames, now_ns)
-        if frames and time.monotonic_ns() - now_ns > self._period_ns:
-            # Held up between the last look at the clock and the frames' leaving (its CPU
-            # taken between two instructions): nothing in the process can prevent that, but
-            # the frames carried a decision over a period old, so it is counted and logged.
-            counters[self._i_left_late] += 1
         self._count_tx()
         counters[self._i_ticks] += 1
         self._last_ns = now_ns
@@ -396,6 +412,7 @@ class OutputLoop:
         counters = self._counters
         overruns_i, immediate_i = self._stats.slot("overruns"), self._stats.slot("immediate_sends")
         input_side, relay, tick = self._input, self._relay, self.tick
+        prepare = self._selector.prepare
         period_ns = self._period_ns
         min_gap_ns = period_ns // IMMEDIATE_MAX_RATE_FACTOR
         keepalive_ns = period_ns * 3 // 2
@@ -419,16 +436,19 @@ class OutputLoop:
                 writers = [link_fd] if link_fd is not None and input_side.wants_write else []
                 ready, writable, _ = wait(readers, writers, (), delay_ns / 1e9)
                 now = monotonic_ns()
-                if link_fd in ready and input_side.on_readable(now) and immediate:
-                    # Fresh input goes out now, or as soon as the frame-rate cap allows: never
-                    # within min_gap of the last input's frame, so an input flood cannot flood
-                    # the bus. A keep-alive just before it does not hold it back: keep-alives
-                    # fire only in the input's gaps (1.5 periods), so frames stay under twice
-                    # the rate all the same, and an input a little early after one (input at
-                    # half the rate: the keep-alive fires just min_gap before the next input)
-                    # is not made to wait for the cap.
-                    next_ns = min(next_ns, max(now, last_input_ns + min_gap_ns))
-                    input_tick = True
+                if link_fd in ready and input_side.on_readable(now):
+                    # Its frames are made now too, not at the tick that sends them.
+                    prepare(input_side.fractions)
+                    if immediate:
+                        # Fresh input goes out now, or as soon as the frame-rate cap allows:
+                        # never within min_gap of the last input's frame, so an input flood
+                        # cannot flood the bus. A keep-alive just before it does not hold it
+                        # back: keep-alives fire only in the input's gaps (1.5 periods), so
+                        # frames stay under twice the rate all the same, and an input a little
+                        # early after one (input at half the rate: the keep-alive fires just
+                        # min_gap before the next input) is not made to wait for the cap.
+                        next_ns = min(next_ns, max(now, last_input_ns + min_gap_ns))
+                        input_tick = True
                 main_gone = not self._exchange_with_main(now, relay_ready=relay_fd in ready)
                 # Woken before the tick: wait again (a main process gone starts the flush now).
                 # A wait that timed out is the tick, even a µs early (the timeout's rounding):

@@ -143,6 +143,45 @@ def test_at_a_fixed_rate_an_input_is_taken_as_it_arrives_not_at_the_tick(
         autopilot.close()
 
 
+@pytest.mark.parametrize(
+    "loop_on_virtual_bus", [{"rate_hz": 1, "input_timeout_ms": 1000}], indirect=True
+)
+def test_at_a_fixed_rate_an_inputs_frames_are_made_as_it_arrives(
+    loop_on_virtual_bus: tuple[int, LoopStats], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At 1 Hz, running, a new input sent just after a tick has its frame encoded within half
+    a second, with no tick between: the tick that sends it only stamps its transfer ID."""
+    encoded: list[float] = []
+    encode = codec.encode_raw_12b
+
+    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
+        encoded.append(time.monotonic())
+        return encode(group, throttles, transfer_id)
+
+    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    port, stats = loop_on_virtual_bus
+    autopilot = Autopilot(port)
+    try:
+        autopilot.pwm, autopilot.armed = PWM, True
+        autopilot.start_stream(100)
+        deadline = time.monotonic() + 10
+        while stats["state"] != LoopState.RUNNING and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert LoopState(stats["state"]) == LoopState.RUNNING
+        ticks = stats["ticks"]
+        while stats["ticks"] == ticks and time.monotonic() < deadline:
+            time.sleep(0.001)
+        ticks, made = stats["ticks"], len(encoded)  # a tick just happened: the next is 1 s away
+        changed = time.monotonic()
+        autopilot.pwm = [1300, 1400, 1600, 1700]  # one group of four: one frame
+        while len(encoded) == made and time.monotonic() < changed + 5:
+            time.sleep(0.001)
+        assert (len(encoded), stats["ticks"]) == (made + 1, ticks)
+        assert encoded[-1] - changed < 0.5
+    finally:
+        autopilot.close()
+
+
 # -- one tick at a time --------------------------------------------------------------------
 
 
@@ -423,3 +462,64 @@ def test_a_fault_in_a_tick_sends_safe_values_and_the_next_tick_runs_again() -> N
     assert throttles([0.5, 0.5, 0.5]) == (0, 0, 0, 0)
     assert selector.faults == 1 and selector.state == LoopState.RUNNING
     assert throttles(good) == (1000, 1000, 1000, 1000)
+
+
+def _running_selector(slew_rates: list[float]) -> tuple[CommandSelector, int]:
+    """A selector over CKESC x4, RUNNING after one tick at the time it returns."""
+    inputs = ControlInputs(
+        have_input=True, input_valid=True, armed=True, input_interval_ns=5 * MS, input_intervals=3
+    )
+    limits = SafetyLimits(True, 100 * MS, 3000 * MS)
+    selector = CommandSelector(
+        CkescDriver("12b", [1, 2, 3, 4]), SlewLimiter(slew_rates, slew_rates), limits, inputs, 4
+    )
+    now = 10_000 * MS
+    inputs.input_produced_ns = inputs.armed_heard_ns = now
+    selector.select(0, now, [0.0] * 4, 0.0025)
+    assert selector.state == LoopState.RUNNING
+    return selector, now
+
+
+def test_the_selector_has_an_inputs_frames_made_ahead_only_when_a_tick_sends_them_as_they_are(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Running without slew rates, a new input's frames are made when it arrives; with slew
+    rates (a tick sends other values) or in any other state, nothing is made ahead. A vector
+    that cannot be encoded raises nothing there: the tick meets it with the safe values."""
+    encoded: list[int] = []
+    encode = codec.encode_raw_12b
+
+    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
+        encoded.append(group)
+        return encode(group, throttles, transfer_id)
+
+    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    selector, now = _running_selector([0.0] * 4)
+    made = len(encoded)
+    selector.prepare([0.5] * 4)
+    assert len(encoded) == made + 1
+    frames = selector.select(1, now, [0.5] * 4, 0.0025)
+    assert len(encoded) == made + 1  # the tick only stamped it
+    decoded = codec.decode(frames[0])
+    assert decoded is not None and isinstance(decoded.message, records.RawCommand12b)
+    assert decoded.message.throttles == (1000, 1000, 1000, 1000)
+    selector.prepare(None)  # an invalid input: nothing to make
+    selector.prepare([0.5] * 3)  # one output short: raises nothing here
+    assert len(encoded) == made + 1
+    assert throttles_of(selector.select(2, now, [0.5] * 3, 0.0025)) == SAFE
+    assert selector.faults == 1
+
+    slewing, now = _running_selector([1.0] * 4)
+    made = len(encoded)
+    slewing.prepare([0.5] * 4)
+    assert len(encoded) == made
+    slewing.state = LoopState.DISARMED
+    selector.state = LoopState.DISARMED
+    selector.prepare([0.75] * 4)
+    assert len(encoded) == made
+
+
+def throttles_of(frames: list[can.Message]) -> tuple[int, ...]:
+    decoded = codec.decode(frames[0])
+    assert decoded is not None and isinstance(decoded.message, records.RawCommand12b)
+    return decoded.message.throttles

@@ -45,10 +45,10 @@ class CkescDriver:
         # The type whose transfer IDs the tail bytes count (10b frames have no tail byte).
         self._transfer_type = _TRANSFER_TYPES.get(command)
 
-    def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        # The frames change with the input, not the tick: a tick that repeats the last input
-        # only writes its new transfer IDs into their tail bytes, in place (the frames are sent
-        # before the next call). NaN never equals itself: encoded again.
+    def prepare(self, fractions: Sequence[float]) -> None:
+        # The frames change with the input, not the tick: they are made here, when the input
+        # arrives, and a tick that sends them only writes its transfer IDs into their tail
+        # bytes. NaN never equals itself: encoded again.
         if fractions != self._fractions:
             self._fractions = ()  # until every frame is made: a raise leaves none cached
             throttles = self._throttles
@@ -57,6 +57,11 @@ class CkescDriver:
                 throttles[index] = int(unit_fraction(fraction) * full_scale + 0.5)
             self._frames = self._encode(throttles)
             self._fractions = list(fractions)
+
+    def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
+        # Made here only when not prepared (slewed commands, safe values, a motor test); the
+        # tail bytes are written in place (the frames are sent before the next call).
+        self.prepare(fractions)
         frames = self._frames
         transfer_type = self._transfer_type
         if transfer_type is not None:

@@ -84,6 +84,11 @@ class DronecanDriver:
     def kind(self) -> str:
         return f"RawCommand x{len(self._commands)}"
 
+    def prepare(self, fractions: Sequence[float]) -> None:
+        # Nothing made ahead yet: each tick packs its RawCommand whole (the payload could be
+        # packed here once per input, the tick writing only the transfer IDs, as CKESC does).
+        pass
+
     def describe_command(self, fraction: float) -> str:
         return f"DroneCAN RawCommand {round(fraction * COMMAND_MAX)}"
 

@@ -79,6 +79,11 @@ class FtDriver:
         # Zero current releases the motor whatever the throttle mode: it coasts to a stop.
         return [codec.encode_command(esc_id, self._stop_command, 0.0, records.Gear.NONE)]
 
+    def prepare(self, fractions: Sequence[float]) -> None:
+        # Each tick's one frame is for the next ESC in turn, with the newest input: nothing
+        # to make ahead that the tick would not make again.
+        pass
+
     def describe_command(self, fraction: float) -> str:
         keys = self._keys
         if keys.ft_mode == "current":

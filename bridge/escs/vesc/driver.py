@@ -65,6 +65,11 @@ class VescDriver:
         # brake it hard, and rpm 0 hold it.)
         return [encode_command(controller_id, Packet.SET_CURRENT, 0.0)]
 
+    def prepare(self, fractions: Sequence[float]) -> None:
+        # Each tick's one frame is for the next controller in turn, with the newest input:
+        # nothing to make ahead that the tick would not make again.
+        pass
+
     def describe_command(self, fraction: float) -> str:
         value = fraction * self._full_scale
         if self._mode == "current":

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import can
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -59,3 +61,43 @@ def test_ckesc_never_out_of_range(fractions: list[float]) -> None:
     for frame in map(codec.decode, CkescDriver("12b", range(1, 9)).tick_frames(0, fractions)):
         assert frame is not None and isinstance(frame.message, records.RawCommand12b)
         assert all(0 <= t <= records.THROTTLE_MAX for t in frame.message.throttles)
+
+
+def test_ckesc_frames_made_for_an_input_are_the_ones_its_ticks_send(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``prepare`` makes an input's frames between ticks: the ticks that send them encode
+    nothing, only stamp their transfer IDs, and send what a driver never prepared sends."""
+    fractions = [0.0, 0.25, 0.5, 1.0, 0.0005, 0.9995, 0.3, 0.7]
+    unprepared = CkescDriver("12b", range(1, 9))
+    expected = [
+        [(m.arbitration_id, bytes(m.data)) for m in unprepared.tick_frames(tick, fractions)]
+        for tick in range(3)
+    ]
+    encoded: list[int] = []
+    encode = codec.encode_raw_12b
+
+    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
+        encoded.append(group)
+        return encode(group, throttles, transfer_id)
+
+    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    prepared = CkescDriver("12b", range(1, 9))
+    prepared.prepare(fractions)
+    assert encoded == [1, 2]
+    for tick in range(3):
+        sent = prepared.tick_frames(tick, list(fractions))  # an equal list, not the same one
+        assert [(m.arbitration_id, bytes(m.data)) for m in sent] == expected[tick]
+    assert encoded == [1, 2]
+    assert [f.transfer_id for f in map(codec.decode, sent) if f] == [4, 5]
+
+
+def test_ckesc_a_prepare_that_fails_leaves_no_frames_behind() -> None:
+    """A vector that cannot be encoded raises, and the frames made before it are dropped: the
+    tick makes its own again rather than send ones it did not ask for."""
+    driver = CkescDriver("12b", range(1, 9))
+    driver.prepare([0.5] * 8)
+    with pytest.raises(ValueError):
+        driver.prepare([0.25] * 7)
+    frames = [codec.decode(m) for m in driver.tick_frames(0, [1.0] * 8)]
+    assert _throttles([f for f in frames if f is not None]) == dict.fromkeys(range(1, 9), 2000)
