@@ -12,6 +12,12 @@ Contenders, each fed by the same autopilot and timed by the same observer:
 - fixed, immediate: ``esc-bridge run`` through its CLI with ``[output] latency`` "fixed" or
   "immediate", as shipped (loop in its own SCHED_FIFO process, Zenoh on loopback without
   scouting).
+- floor (not run unless named): the least a Python loop does for the same frames, run as the
+  bridge's loop runs (SCHED_FIFO at its default priority, ticks on absolute deadlines of the
+  monotonic clock): at each tick it takes the newest SERVO_OUTPUT_RAW's first channel off its
+  socket (no CRC, arming, staleness or relay), encodes and sends through python-can as the
+  others do. Not a design (no safety path): what this machine charges any Python process for
+  these frames at this rate, on the day, to judge the others' CPU and period error against.
 
 Every contender runs at nice -10 when the bench runs as root (a busy machine's other work
 would otherwise keep the bridge's loop process from starting in time).
@@ -121,6 +127,7 @@ START_TIMEOUT_S = 60.0  # a first start generates the MAVLink dialect (seconds a
 # bridge's loop process must still start within the 15 s the bridge gives it.
 NICE_LEVEL = -10
 NICE = ["nice", "-n", str(NICE_LEVEL)] if os.geteuid() == 0 else []
+FLOOR_FIFO_PRIORITY = 50  # the bridge loop's default [output] realtime_priority
 LATENCY_HORIZON_S = 0.5  # a value not on the bus this long after its send was never sent
 
 
@@ -249,6 +256,60 @@ def pilot_worker(mavlink_port: int, stop: Any, ready: Any, out: Any) -> None:
             time.sleep(delay)
     sock.close()
     out.put((problem, sends))
+
+
+def floor_worker(
+    protocol: str, mavlink_port: int, can_port: int, escs: int, stop: Any, ready: Any
+) -> None:
+    """The floor contender (the module docstring), until ``stop``."""
+    ignore_sigint()
+    with suppress(PermissionError):
+        os.nice(NICE_LEVEL)
+    if (problem := set_fifo(FLOOR_FIFO_PRIORITY)) is not None:
+        print(f"!! floor: not at SCHED_FIFO: {problem}", file=sys.stderr, flush=True)
+    gc.disable()
+    import can
+
+    link = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    link.bind(("127.0.0.1", mavlink_port))
+    link.setblocking(False)
+    bus = can.Bus(interface="udp_multicast", channel=GROUP, port=can_port, hop_limit=0)
+    period_ns = 1_000_000_000 // CASES[protocol]["ticks_hz"]
+    groups = range(1, (escs + 3) // 4 + 1)
+    pwm = 1000
+    tid = tick = 0
+    ready.set()
+    next_ns = time.monotonic_ns()
+    while not stop.is_set():
+        with suppress(BlockingIOError):
+            while True:
+                data = link.recv(MAX_DATAGRAM)
+                # MAVLink 2 SERVO_OUTPUT_RAW (id 36): servo1_raw after the 4-byte time_usec.
+                if len(data) >= 16 and data[0] == 0xFD and data[7:10] == b"\x24\x00\x00":
+                    pwm = data[14] | data[15] << 8
+        fraction = min(max((pwm - 1000) / 1000, 0.0), 1.0)
+        if protocol == "ckesc":
+            throttles = [int(fraction * ckesc_records.THROTTLE_MAX + 0.5)] * 4
+            for group in groups:
+                bus.send(ckesc_codec.encode_raw_12b(group, throttles, tid))
+                tid = (tid + 1) & 31
+        else:
+            bus.send(
+                ft_codec.encode_command(
+                    tick % escs + 1,
+                    ft_records.Command.SET_CURRENT_GEAR_CRC16,
+                    fraction * FT_MAX_CURRENT_A,
+                )
+            )
+        tick += 1
+        next_ns += period_ns
+        delay_ns = next_ns - time.monotonic_ns()
+        if delay_ns > 0:
+            time.sleep(delay_ns / 1e9)
+        elif delay_ns < -period_ns:
+            next_ns = time.monotonic_ns()  # a period late: on from now, no burst
+    bus.shutdown()
+    link.close()
 
 
 def plain_worker(
@@ -411,16 +472,16 @@ def run_once(
         if not observer_ready.wait(START_TIMEOUT_S):
             raise RuntimeError("the observer did not start")
         daemon: subprocess.Popen[bytes] | None = None
-        if contender == "plain":
+        if contender in ("plain", "floor"):
             stop_plain, plain_ready = ctx.Event(), ctx.Event()
             plain = ctx.Process(
-                target=plain_worker,
+                target=plain_worker if contender == "plain" else floor_worker,
                 args=(case.protocol, mavlink_port, can_port, case.escs, stop_plain, plain_ready),
             )
             plain.start()
             procs.add_worker(plain, stop_plain)
             if not plain_ready.wait(START_TIMEOUT_S):
-                raise RuntimeError("the plain script did not start")
+                raise RuntimeError(f"the {contender} contender did not start")
             main_pid = plain.pid or 0
         else:
             latency, _, before = contender.partition("-")
@@ -633,7 +694,7 @@ def print_ratios(rows: dict[str, Row]) -> None:
         return
     base = plain.median("cpu_total_pct")
     parts = []
-    for contender in ("fixed", "immediate", "fixed-before", "immediate-before"):
+    for contender in ("floor", "fixed", "immediate", "fixed-before", "immediate-before"):
         if (row := rows.get(contender)) is not None:
             parts.append(
                 f"{contender} {row.median('cpu_total_pct') / base:.2f}x "
@@ -648,7 +709,7 @@ def print_per_frame(rows: dict[tuple[str, str, bool, str], Row]) -> None:
     lines = []
     for (protocol, load, telemetry, contender), on in rows.items():
         off = rows.get((protocol, load, False, contender))
-        if not telemetry or contender == "plain" or off is None:
+        if not telemetry or contender in ("plain", "floor") or off is None:
             continue
         frames = on.median("telemetry_per_s")
         extra = on.median("cpu_main_pct") - off.median("cpu_main_pct")
@@ -673,7 +734,7 @@ def main() -> int:
     parser.add_argument(
         "--contenders",
         nargs="+",
-        choices=["plain", "fixed", "immediate", "fixed-before", "immediate-before"],
+        choices=["plain", "floor", "fixed", "immediate", "fixed-before", "immediate-before"],
         default=["plain", "fixed", "immediate"],
     )
     parser.add_argument(
