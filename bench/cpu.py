@@ -44,6 +44,9 @@ Measured over ``--seconds`` after ``--warmup`` seconds of armed input:
 - input -> frame: from the autopilot's send of a value to the first frame carrying it, µs;
   seen: the share of sends that reached the bus (FT at 100 Hz per ESC carries every other one);
 - telemetry: the non-command frames per second on the bus.
+- ctxsw: context switches per second of all the contender's processes (threads included),
+  nearly all of them waits ending: on this machine a process's CPU follows its wake-ups more
+  than its work (``bench/tick.py``).
 
 Each cell is the median over the runs of each run's figure. Under each case: the bridge's
 total CPU over the plain script's; with and without telemetry run, the main process's CPU per
@@ -92,6 +95,7 @@ from _common import (
     GROUP,
     MAX_DATAGRAM,
     bridge_command,
+    context_switches,
     cpu_seconds,
     free_port,
     holds_bus,
@@ -449,6 +453,7 @@ class Run:
     lat_p99_us: float = float("nan")
     seen_pct: float = float("nan")
     telemetry_per_s: float = 0.0
+    switches_per_s: float = float("nan")  # context switches, all the contender's processes
     problems: list[str] = field(default_factory=list)
     profile: dict[str, list[str]] = field(default_factory=dict)
 
@@ -534,16 +539,19 @@ def run_once(
             profile_toggle([main_pid, *loops])
         t0_wall, t0 = time.time(), time.monotonic()
         cpu0 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
+        switches0 = context_switches(everything)
         if daemon is not None:
             sleep_watching(args.seconds, daemon, log_path)
         else:
             time.sleep(args.seconds)
         elapsed = time.monotonic() - t0
         cpu1 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
+        switches1 = context_switches(everything)
         t1_wall = time.time()
         run.cpu_main_pct = 100 * (cpu1[0] - cpu0[0]) / elapsed
         run.cpu_loop_pct = 100 * (cpu1[1] - cpu0[1]) / elapsed if loops else float("nan")
         run.cpu_total_pct = 100 * (cpu1[2] - cpu0[2]) / elapsed
+        run.switches_per_s = (switches1 - switches0) / elapsed
         if args.profiling:
             profile_toggle([main_pid, *loops])
             run.profile = profile_report(tmp / "profiles", main_pid, args.profile_top)
@@ -671,7 +679,8 @@ class Row:
 
 HEADER = (
     f"{'contender':<10} {'runs':>4} {'CPU %':>6} {'main %':>6} {'loop %':>6} {'rate Hz':>7} "
-    f"{'err p50':>7} {'err p99':>7} {'lat p50':>7} {'lat p99':>7} {'seen %':>6} {'telem/s':>7}"
+    f"{'err p50':>7} {'err p99':>7} {'lat p50':>7} {'lat p99':>7} {'seen %':>6} {'telem/s':>7} "
+    f"{'ctxsw/s':>7}"
 )
 
 
@@ -683,7 +692,7 @@ def print_row(row: Row) -> None:
         f"{num(m('rate_hz'), '.1f', 7)} {num(m('err_p50_us'), '.0f', 7)} "
         f"{num(m('err_p99_us'), '.0f', 7)} {num(m('lat_p50_us'), '.0f', 7)} "
         f"{num(m('lat_p99_us'), '.0f', 7)} {num(m('seen_pct'), '.0f', 6)} "
-        f"{num(m('telemetry_per_s'), '.0f', 7)}",
+        f"{num(m('telemetry_per_s'), '.0f', 7)} {num(m('switches_per_s'), '.0f', 7)}",
         flush=True,
     )
 

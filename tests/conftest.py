@@ -460,6 +460,23 @@ def holds_of(daemon: Daemon) -> Holds:
 
 
 @pytest.fixture
+def ckesc_12b_encodes(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """The monotonic time of every CKESC RawCommand_12b frame encoded from now on (the real
+    encoder still makes each one)."""
+    from bridge.escs.ckesc import codec
+
+    encoded: list[float] = []
+    encode = codec.encode_raw_12b
+
+    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
+        encoded.append(time.monotonic())
+        return encode(group, throttles, transfer_id)
+
+    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    return encoded
+
+
+@pytest.fixture
 def can_port() -> int:
     return free_port()
 

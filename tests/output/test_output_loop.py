@@ -147,18 +147,11 @@ def test_at_a_fixed_rate_an_input_is_taken_as_it_arrives_not_at_the_tick(
     "loop_on_virtual_bus", [{"rate_hz": 1, "input_timeout_ms": 1000}], indirect=True
 )
 def test_at_a_fixed_rate_an_inputs_frames_are_made_as_it_arrives(
-    loop_on_virtual_bus: tuple[int, LoopStats], monkeypatch: pytest.MonkeyPatch
+    loop_on_virtual_bus: tuple[int, LoopStats], ckesc_12b_encodes: list[float]
 ) -> None:
     """At 1 Hz, running, a new input sent just after a tick has its frame encoded within half
     a second, with no tick between: the tick that sends it only stamps its transfer ID."""
-    encoded: list[float] = []
-    encode = codec.encode_raw_12b
-
-    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
-        encoded.append(time.monotonic())
-        return encode(group, throttles, transfer_id)
-
-    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    encoded = ckesc_12b_encodes
     port, stats = loop_on_virtual_bus
     autopilot = Autopilot(port)
     try:
@@ -481,19 +474,12 @@ def _running_selector(slew_rates: list[float]) -> tuple[CommandSelector, int]:
 
 
 def test_the_selector_has_an_inputs_frames_made_ahead_only_when_a_tick_sends_them_as_they_are(
-    monkeypatch: pytest.MonkeyPatch,
+    ckesc_12b_encodes: list[float],
 ) -> None:
     """Running without slew rates, a new input's frames are made when it arrives; with slew
     rates (a tick sends other values) or in any other state, nothing is made ahead. A vector
     that cannot be encoded raises nothing there: the tick meets it with the safe values."""
-    encoded: list[int] = []
-    encode = codec.encode_raw_12b
-
-    def counted(group: int, throttles: list[int], transfer_id: int) -> can.Message:
-        encoded.append(group)
-        return encode(group, throttles, transfer_id)
-
-    monkeypatch.setattr(codec, "encode_raw_12b", counted)
+    encoded = ckesc_12b_encodes
     selector, now = _running_selector([0.0] * 4)
     made = len(encoded)
     selector.prepare([0.5] * 4)
