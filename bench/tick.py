@@ -1,16 +1,17 @@
 """One tick of the output loop, back to back: what the loop's own Python and its sends cost
 when nothing else runs between ticks, against what a tick costs in the running bridge.
 
-Run: ``python bench/tick.py [--runs 5] [--ticks 20000]``
+Run: ``python bench/tick.py [--runs 5] [--ticks 10000] [--protocols ckesc dronecan]``
 
-An :class:`~bridge.output.output_loop.OutputLoop` for CKESC 12b x8 (two frames a tick) is
-opened in this process and ticked ``--ticks`` times in a row, on a ``virtual`` bus (the tick's
-Python alone: a send is an append to a queue nobody reads) and on a ``udp_multicast`` bus of its
-own port (python-can's packing and the ``sendto``), with the autopilot's input RUNNING
-(``require_armed`` off, five SERVO_OUTPUT_RAW 10 ms apart read before the first tick; checked
-to be still RUNNING after the last) and, separately, with no input (the safe values). Each
-tick is timed with this thread's CPU clock (``time.thread_time_ns``). The table gives, per
-case, the median over the runs of each run's p50 and p99 µs a tick.
+An :class:`~bridge.output.output_loop.OutputLoop` for CKESC 12b x8 (two frames a tick), or
+DroneCAN x8 (one RawCommand of three frames a tick), is opened in this process and ticked
+``--ticks`` times in a row, on a ``virtual`` bus (the tick's Python alone: a send is an append
+to a queue nobody reads) and on a ``udp_multicast`` bus of its own port (python-can's packing
+and the ``sendto``), with the autopilot's input RUNNING (``require_armed`` off, five
+SERVO_OUTPUT_RAW 10 ms apart read before the first tick; checked to be still RUNNING after the
+last) and, separately, with no input (the safe values). Each tick is timed with this thread's
+CPU clock (``time.thread_time_ns``). The table gives, per case, the median over the runs of
+each run's p50 and p99 µs a tick.
 
 ``bench/cpu.py`` measures the running bridge: its loop process's CPU over its 400 ticks a
 second (and the inputs between them) divided by the ticks is what a tick costs with a wait
@@ -20,6 +21,7 @@ between ticks; this is what it costs without one.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import socket
 import statistics
@@ -30,11 +32,12 @@ from _common import GROUP, free_port
 from _stats import percentile
 
 CASES = ("virtual", "udp_multicast")
+PROTOCOLS = {"ckesc": "CKESC 12b", "dronecan": "DroneCAN"}
 ESC_IDS = list(range(1, 9))
 STREAM_INPUTS = 5  # 10 ms apart, before the first tick
 
 
-def measure(interface: str, running: bool, ticks: int) -> list[float]:
+def measure(protocol: str, interface: str, running: bool, ticks: int) -> list[float]:
     """µs of CPU of each of ``ticks`` ticks in a row."""
     from pymavlink import mavutil
 
@@ -57,6 +60,7 @@ def measure(interface: str, running: bool, ticks: int) -> list[float]:
         "escs": {"ids": ESC_IDS},
         "mixer": {"name": "passthrough-8"},
         "output": {
+            "protocol": protocol,
             "realtime_priority": 0,
             "loop": "thread",
             "require_armed": not running,
@@ -96,7 +100,9 @@ def measure(interface: str, running: bool, ticks: int) -> list[float]:
                 spent.append((cpu() - started) / 1000)
             state = LoopState(stats["state"])
             if state != (LoopState.RUNNING if running else LoopState.NO_INPUT):
-                raise SystemExit(f"{interface}: the loop was {state.name} at the end of a run")
+                raise SystemExit(
+                    f"{protocol}, {interface}: the loop was {state.name} at the end of a run"
+                )
         finally:
             loop.request_stop()
             loop.close()
@@ -107,27 +113,28 @@ def measure(interface: str, running: bool, ticks: int) -> list[float]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5)
-    parser.add_argument("--ticks", type=int, default=20000, help="ticks in a row per run")
+    parser.add_argument("--ticks", type=int, default=10000, help="ticks in a row per run")
+    parser.add_argument("--protocols", nargs="+", choices=PROTOCOLS, default=["ckesc"])
     args = parser.parse_args()
     load = os.getloadavg()[0]
-    rows: dict[tuple[str, bool], tuple[list[float], list[float]]] = {}
+    rows: dict[tuple[str, str, bool], tuple[list[float], list[float]]] = {}
     for _ in range(args.runs):
-        for interface in CASES:
+        for protocol, interface in itertools.product(args.protocols, CASES):
             for running in (True, False):
-                spent = measure(interface, running, args.ticks)
-                p50s, p99s = rows.setdefault((interface, running), ([], []))
+                spent = measure(protocol, interface, running, args.ticks)
+                p50s, p99s = rows.setdefault((protocol, interface, running), ([], []))
                 p50s.append(percentile(spent, 0.5))
                 p99s.append(percentile(spent, 0.99))
     print(
-        f"output loop: CPU µs a tick, CKESC 12b x8, {args.ticks} ticks in a row; medians over "
+        f"output loop: CPU µs a tick, 8 ESCs, {args.ticks} ticks in a row; medians over "
         f"{args.runs} runs; load {load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     )
-    print(f"{'bus':<15}{'input':<18}{'p50 µs':>8}{'p99 µs':>8}")
-    print("-" * 49)
-    for (interface, running), (p50s, p99s) in rows.items():
+    print(f"{'ESCs':<10}{'bus':<15}{'input':<18}{'p50 µs':>8}{'p99 µs':>8}")
+    print("-" * 59)
+    for (protocol, interface, running), (p50s, p99s) in rows.items():
         what = "running" if running else "none (safe)"
         print(
-            f"{interface:<15}{what:<18}"
+            f"{PROTOCOLS[protocol]:<10}{interface:<15}{what:<18}"
             f"{statistics.median(p50s):>8.1f}{statistics.median(p99s):>8.1f}"
         )
     return 0

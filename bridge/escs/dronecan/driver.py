@@ -67,6 +67,7 @@ class DronecanDriver:
         self._slots = list(zip(indices, flags, strict=True))
         self._commands = [0] * (max(indices) + 1)
         self._zeros = [0] * len(self._commands)
+        self._fractions: Sequence[float] = ()  # whose values self._commands holds
         self._encoder = RawCommandEncoder(len(self._commands), node_id)
         self._node_id = node_id
         self._node_status = node_status
@@ -85,9 +86,16 @@ class DronecanDriver:
         return f"RawCommand x{len(self._commands)}"
 
     def prepare(self, fractions: Sequence[float]) -> None:
-        # Nothing made ahead yet: each tick packs its RawCommand whole (the payload could be
-        # packed here once per input, the tick writing only the transfer IDs, as CKESC does).
-        pass
+        # The RawCommand's frames change with the input, not the tick: made here, and a tick
+        # that sends them only writes its transfer ID. NaN never equals itself: made again.
+        if fractions != self._fractions:
+            self._fractions = ()  # until the frames are made: a raise leaves none kept
+            commands = self._commands
+            for (index, reverse), fraction in zip(self._slots, fractions, strict=True):
+                limited = signed_fraction(fraction) if reverse else unit_fraction(fraction)
+                commands[index] = round(limited * COMMAND_MAX)
+            self._encoder.prepare(commands)
+            self._fractions = list(fractions)
 
     def describe_command(self, fraction: float) -> str:
         return f"DroneCAN RawCommand {round(fraction * COMMAND_MAX)}"
@@ -108,15 +116,13 @@ class DronecanDriver:
         transfer_id = self._status_transfer_id
         self._status_transfer_id = (transfer_id + 1) & 0x1F
         uptime_s = (now - self._started_ns) // 1_000_000_000
-        frames.append(node_status_frame(self._node_id, transfer_id, uptime_s))
-        return frames
+        # A new list: the encoder keeps its own for the next transfer.
+        return [*frames, node_status_frame(self._node_id, transfer_id, uptime_s)]
 
     def tick_frames(self, tick: int, fractions: Sequence[float]) -> list[can.Message]:
-        commands = self._commands
-        for (index, reverse), fraction in zip(self._slots, fractions, strict=True):
-            limited = signed_fraction(fraction) if reverse else unit_fraction(fraction)
-            commands[index] = round(limited * COMMAND_MAX)
-        return self._with_status(self._encoder.frames(commands))
+        # Made here only when not prepared (slewed commands, a motor test).
+        self.prepare(fractions)
+        return self._with_status(self._encoder.frames(self._commands))
 
     def safe_frames(self, tick: int) -> list[can.Message]:
         return self._with_status(self._encoder.frames(self._zeros))

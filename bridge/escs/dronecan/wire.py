@@ -117,14 +117,16 @@ def pack_raw_command(commands: Sequence[int]) -> bytes:
 
 class RawCommandEncoder:
     """RawCommand transfers of a fixed length from one node, the transfer ID counting 0..31
-    per transfer: everything but the values is worked out once.
+    per transfer: everything but the values is worked out once, and the frames of the same
+    values are made once (a transfer that repeats them only writes its transfer ID into their
+    tail bytes).
 
     Raises:
         ValueRangeError: ``channels`` outside 1..20, ``source_node`` outside 1..125 or a
             priority outside 0..31.
     """
 
-    __slots__ = ("_arbitration_id", "_channels", "transfer_id")
+    __slots__ = ("_arbitration_id", "_channels", "_commands", "_frames", "transfer_id")
 
     def __init__(
         self, channels: int, source_node: int, priority: int = PRIORITY_ESC_COMMAND
@@ -135,6 +137,8 @@ class RawCommandEncoder:
             raise ValueRangeError(f"source_node = {source_node!r} is not in 1..125")
         self._arbitration_id = message_id(priority, TYPE_RAW_COMMAND, source_node)
         self._channels = channels
+        self._commands: Sequence[int] = ()  # whose frames self._frames are
+        self._frames: list[can.Message] = []
         self.transfer_id = 0
         """The next transfer's ID."""
 
@@ -142,25 +146,46 @@ class RawCommandEncoder:
     def arbitration_id(self) -> int:
         return self._arbitration_id
 
+    def prepare(self, commands: Sequence[int]) -> list[can.Message]:
+        """The frames of a transfer carrying ``commands`` (one per channel), their transfer ID
+        not written yet: made when the values change, kept while they do not.
+
+        Raises:
+            ValueRangeError: the wrong number of values, or one outside -8192..8191 (nothing
+                is kept).
+        """
+        if commands != self._commands:
+            self._commands = ()  # until every frame is made: a raise leaves none kept
+            if len(commands) != self._channels:
+                raise ValueRangeError(f"expected {self._channels} commands, got {len(commands)}")
+            if commands and not (min(commands) >= COMMAND_MIN and max(commands) <= COMMAND_MAX):
+                raise ValueRangeError(
+                    f"RawCommand values {list(commands)} are not all in -8192..8191"
+                )
+            payload = pack_raw_command(commands)
+            arbitration_id = self._arbitration_id
+            self._frames = [
+                can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True)
+                for data in frames_data(payload, 0, _RAW_COMMAND_CRC)
+            ]
+            self._commands = list(commands)
+        return self._frames
+
     def frames(self, commands: Sequence[int]) -> list[can.Message]:
-        """The frames of the next transfer carrying ``commands`` (one per channel).
+        """The frames of the next transfer carrying ``commands`` (one per channel). They are
+        the encoder's until its next call, which may reuse them: send them before then.
 
         Raises:
             ValueRangeError: the wrong number of values, or one outside -8192..8191 (nothing
                 is sent and the transfer ID is not used).
         """
-        if len(commands) != self._channels:
-            raise ValueRangeError(f"expected {self._channels} commands, got {len(commands)}")
-        if commands and not (min(commands) >= COMMAND_MIN and max(commands) <= COMMAND_MAX):
-            raise ValueRangeError(f"RawCommand values {list(commands)} are not all in -8192..8191")
-        payload = pack_raw_command(commands)
+        frames = self.prepare(commands)
         transfer_id = self.transfer_id
         self.transfer_id = (transfer_id + 1) & 0x1F
-        arbitration_id = self._arbitration_id
-        return [
-            can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True)
-            for data in frames_data(payload, transfer_id, _RAW_COMMAND_CRC)
-        ]
+        for frame in frames:
+            data = frame.data
+            data[-1] = data[-1] & 0xE0 | transfer_id  # its start, end and toggle bits kept
+        return frames
 
 
 def pack_node_status(

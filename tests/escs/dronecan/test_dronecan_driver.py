@@ -72,9 +72,16 @@ def test_never_out_of_range(fractions: list[float], reversible: list[bool]) -> N
 
 def test_safe_frames_are_zeros_and_every_tick_takes_the_next_transfer_id() -> None:
     driver = DronecanDriver(range(8), node_status=False)
-    ticks = [driver.tick_frames(0, [0.5] * 8), driver.safe_frames(1), driver.safe_frames(2)]
-    assert commands(ticks[1]) == (0,) * 8 == commands(ticks[2])
-    assert [[f.data[-1] & 0x1F for f in frames] for frames in ticks] == [[0] * 3, [1] * 3, [2] * 3]
+    # Each tick's frames read before the next call, which may reuse them (as sending does).
+    ticks = [
+        (commands(frames), [f.data[-1] & 0x1F for f in frames])
+        for frames in (
+            driver.tick_frames(0, [0.5] * 8) if tick == 0 else driver.safe_frames(tick)
+            for tick in range(3)
+        )
+    ]
+    assert ticks[1][0] == (0,) * 8 == ticks[2][0]
+    assert [ids for _, ids in ticks] == [[0] * 3, [1] * 3, [2] * 3]
 
 
 def test_node_status_once_a_second_on_the_clock() -> None:
@@ -130,3 +137,33 @@ def test_the_output_loop_never_imports_dronecan() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
     )
     assert result.stdout.strip() == "[]"
+
+
+def test_an_inputs_frames_are_made_once_and_each_tick_writes_its_transfer_id() -> None:
+    """``prepare`` makes the RawCommand's frames (three for eight ESCs); each tick that sends
+    them reuses them and writes only its transfer ID: a decoder (the transfer CRC, the toggle
+    bits) reads every tick's transfer whole, with its values and the next transfer ID."""
+    fractions = [0.0, 0.125, 0.25, 0.5, 0.75, 0.875, 1.0, 0.3]
+    driver = DronecanDriver(range(8), node_status=False)
+    driver.prepare(fractions)
+    made: list[can.Message] | None = None
+    decoder = Decoder()
+    for tick in range(3):
+        frames = driver.tick_frames(tick, list(fractions))  # an equal list, not the same one
+        if made is None:
+            made = list(frames)
+        assert len(frames) == 3 and all(a is b for a, b in zip(frames, made, strict=True))
+        decoded = [d for d in (decoder.decode(m) for m in frames) if d is not None]
+        whole = [(d.transfer_id, d.frames, d.message) for d in decoded]
+        values = tuple(round(f * wire.COMMAND_MAX) for f in fractions)
+        assert whole[-1] == (tick, 3, RawCommand(values))
+
+
+def test_a_prepare_that_fails_leaves_no_frames_behind() -> None:
+    """A vector of the wrong length raises, and the frames made before it are dropped: the
+    tick makes its own again."""
+    driver = DronecanDriver(range(4), node_status=False)
+    driver.prepare([0.5] * 4)
+    with pytest.raises(ValueError):
+        driver.prepare([0.25] * 3)
+    assert commands(driver.tick_frames(0, [1.0] * 4)) == (wire.COMMAND_MAX,) * 4
