@@ -98,9 +98,7 @@ def test_ft_escs_spin_up_after_a_duty_command(buses: tuple[can.BusABC, can.BusAB
     assert set(data1) == {1, 2}
     for esc_id, want in ((1, 0.3), (2, 0.6)):
         erpms = [m.erpm for _, m in data1[esc_id] if isinstance(m, ft_records.RealtimeData1)]
-        # 100 Hz for 0.6 s, never faster; fewer where a loaded machine ran the simulator's
-        # thread late (34 were seen), each one sent received (frames_out below).
-        assert 10 <= len(erpms) <= 63
+        assert 40 <= len(erpms) <= 63  # 100 Hz for 0.6 s, on a busy machine
         assert erpms[0] < erpms[-1]
         full_erpm = 920 * battery_v * 7
         assert erpms[-1] == pytest.approx(want * full_erpm, rel=0.03)
@@ -170,9 +168,7 @@ def test_after_a_stall_polls_resume_without_a_burst(buses: tuple[can.BusABC, can
     with Simulator(sim_bus, [esc]) as sim:
         time.sleep(0.3)
     polls = esc.polls
-    # The ESCs' clock starts at 0, their power-up (not the host's monotonic clock, hours on):
-    # the first poll within a loaded machine's start-up of the thread (11 ms was seen).
-    assert 0 <= polls[0] < 0.5
+    assert polls[0] < 0.01  # the ESCs' clock starts at 0 (their power-up)
     after = polls[50]
     assert after - polls[49] >= 0.05  # the stall, covered by one longer step
     assert len([t for t in polls if after < t <= after + 0.02]) <= 21  # not ~70 at once
