@@ -7,6 +7,7 @@ import itertools
 import logging
 import re
 import signal
+import statistics
 import subprocess
 import time
 from collections.abc import Callable, Iterator
@@ -24,7 +25,7 @@ from bridge.escs.ckesc.keys import CkescKeys
 from bridge.escs.ckesc.sim import SimCkesc
 from bridge.escs.ft import codec as ft_codec
 from bridge.escs.ft import records as ft_records
-from bridge.escs.ft.sim import SimFt
+from bridge.escs.ft.sim import TELEMETRY_PERIOD_S, SimFt
 from bridge.sim.base import SimEsc
 from bridge.sim.motor import Battery
 from bridge.sim.runner import FAULT_KINDS, ScheduledFault, Simulator, make_escs
@@ -85,9 +86,23 @@ def duty(esc_id: int, value: float) -> can.Message:
     return ft_codec.encode(ft_records.FtFrame(esc_id, ft_records.SetDuty(value)))
 
 
+class TimedFt(SimFt):
+    """A real FT sim that records the ESCs' clock at each telemetry set it sends."""
+
+    def __init__(self, esc_id: int) -> None:
+        super().__init__(esc_id)
+        self.sets_s: list[float] = []
+
+    def poll(self, now_s: float, supply_v: float) -> list[can.Message]:
+        frames = super().poll(now_s, supply_v)
+        if frames:
+            self.sets_s.append(now_s)
+        return frames
+
+
 def test_ft_escs_spin_up_after_a_duty_command(buses: tuple[can.BusABC, can.BusABC]) -> None:
     sim_bus, bus = buses
-    escs = make_escs("ft", 2)
+    escs = [TimedFt(1), TimedFt(2)]
     with Simulator(sim_bus, escs) as sim:
         received = drive(bus, 0.6, lambda: [duty(1, 0.3), duty(2, 0.6)])
     while (late := bus.recv(0)) is not None:  # sent before close, not yet read
@@ -98,7 +113,15 @@ def test_ft_escs_spin_up_after_a_duty_command(buses: tuple[can.BusABC, can.BusAB
     assert set(data1) == {1, 2}
     for esc_id, want in ((1, 0.3), (2, 0.6)):
         erpms = [m.erpm for _, m in data1[esc_id] if isinstance(m, ft_records.RealtimeData1)]
-        assert 40 <= len(erpms) <= 63  # 100 Hz for 0.6 s, on a busy machine
+        sets_s = escs[esc_id - 1].sets_s
+        assert len(erpms) == len(sets_s) <= 61  # every set sent received; 0.6 s at 100 Hz
+        # 100 Hz on the ESC's own clock, each set at the first 1 ms poll it is due at: never
+        # faster, and on time while its thread runs (one starved by a busy machine skips sets
+        # rather than bursting them afterwards).
+        intervals_s = [b - a for a, b in itertools.pairwise(sets_s)]
+        assert len(intervals_s) <= (sets_s[-1] - sets_s[0]) / TELEMETRY_PERIOD_S + 1
+        median_s = statistics.median(intervals_s)
+        assert abs(median_s - TELEMETRY_PERIOD_S) < sim.poll_period_s
         assert erpms[0] < erpms[-1]
         full_erpm = 920 * battery_v * 7
         assert erpms[-1] == pytest.approx(want * full_erpm, rel=0.03)
@@ -125,14 +148,16 @@ def test_ft_telemetry_stops_when_commands_stop(buses: tuple[can.BusABC, can.BusA
 
 
 class RecordingFt(SimFt):
-    """A real FT sim that records the ESCs' clock at each of its polls."""
+    """A real FT sim that records the ESCs' clock at each of its polls, and the host's."""
 
     def __init__(self, esc_id: int) -> None:
         super().__init__(esc_id, idle_telemetry=True)
         self.polls: list[float] = []
+        self.polls_host_s: list[float] = []
 
     def poll(self, now_s: float, supply_v: float) -> list[can.Message]:
         self.polls.append(now_s)
+        self.polls_host_s.append(time.monotonic())
         return super().poll(now_s, supply_v)
 
 
@@ -165,10 +190,16 @@ class StallingFt(RecordingFt):
 def test_after_a_stall_polls_resume_without_a_burst(buses: tuple[can.BusABC, can.BusABC]) -> None:
     sim_bus, _ = buses
     esc = StallingFt(1)
+    before_start_s = time.monotonic()
     with Simulator(sim_bus, [esc]) as sim:
+        after_start_s = time.monotonic()
         time.sleep(0.3)
     polls = esc.polls
-    assert polls[0] < 0.01  # the ESCs' clock starts at 0 (their power-up)
+    # The ESCs' clock starts at 0 (their power-up) when the simulator starts, however late its
+    # thread first runs: each poll's clock is the host's time since then, read a moment before
+    # the poll (by at least the least of those moments, as the thread can be preempted there).
+    zeros_s = [host_s - clock_s for clock_s, host_s in zip(polls, esc.polls_host_s, strict=True)]
+    assert before_start_s <= min(zeros_s) <= after_start_s + 0.001
     after = polls[50]
     assert after - polls[49] >= 0.05  # the stall, covered by one longer step
     assert len([t for t in polls if after < t <= after + 0.02]) <= 21  # not ~70 at once
