@@ -619,30 +619,6 @@ def test_no_zero_frames_while_armed_with_fresh_input(flight: Flight, name: str) 
     assert verdict.blips == [], f"{name}: all-zero frames at {verdict.blips[:10]}"
 
 
-def _safe_after_loss(side: Side, sysid: int, lost_at: float) -> tuple[float, float]:
-    """(the last output forwarded before PX4 fell silent at ``lost_at``, the first all-zero
-    frame after it). The last output is the one before the first gap of 0.5 s from shortly
-    before ``lost_at``: the tap may read what PX4 sent just before the signal a little later."""
-    times, _ = _outputs(side, sysid)
-    i = bisect.bisect_right(times, lost_at - 0.1)
-    while i + 1 < len(times) and times[i + 1] - times[i] < 0.5:
-        i += 1
-    assert i < len(times), f"{side.name}: no output around {lost_at}"
-    last = times[i]
-    assert last - lost_at < 0.1, f"{side.name}: PX4 sent on for {last - lost_at:.2f} s"
-    # Safe once every motor was sent zero (CKESC: one frame; FT: a frame per ESC).
-    first_zero: dict[int, float] = {}
-    for t, command in _commands(side):
-        if t >= last:
-            for motor, value in enumerate(command):
-                if value == 0:
-                    first_zero.setdefault(motor, t)
-        if len(first_zero) == 4:
-            break
-    assert len(first_zero) == 4, f"{side.name}: motors {first_zero} only were made safe"
-    return last, max(first_zero.values())
-
-
 def _running_before(side: Side, last: float, what: str) -> None:
     """The motors were running before PX4's last output before ``what``, so the check after
     it is not vacuous: a quarter of the frames of the 0.3 s before it non-zero (armed idle,
@@ -655,31 +631,65 @@ def _running_before(side: Side, last: float, what: str) -> None:
     )
 
 
-def _safe_in_time(side: Side, sysid: int, lost_at: float, what: str) -> float:
-    """PX4 fell silent at ``lost_at`` with the motors running: every motor safe within
-    input_timeout + 2 output periods of its last output; the time of the last safe frame."""
-    last, safe = _safe_after_loss(side, sysid, lost_at)
+def _safe_in_time(
+    side: Side, sysid: int, lost_at: float, back_at: float, what: str
+) -> tuple[float, float]:
+    """PX4 fell silent at ``lost_at`` with the motors running, and its first output forwarded
+    at or after ``back_at`` ended the silence. From its last output before that silence,
+    every motor is sent zero within input_timeout + 2 output periods, and nothing but zero
+    follows until PX4 sends again (a motor PX4 idles at 1000 µs is sent zero before then:
+    that is not yet the failsafe, but it stays at zero). Returns (the first frame by which every
+    motor had been sent zero, the deadline), after both checks."""
+    times, _ = _outputs(side, sysid)
+    k = bisect.bisect_left(times, back_at)
+    assert 0 < k < len(times), f"{side.name}: no output before and after the {what}"
+    # Bytes PX4 wrote just before the signal may reach the tap a little after it.
+    last, back = times[k - 1], times[k]
+    assert last - lost_at < 0.1, f"{side.name}: PX4 sent on for {last - lost_at:.2f} s"
     _running_before(side, last, what)
-    deadline = INPUT_TIMEOUT_S + 2 * side.period_s
+    deadline = last + INPUT_TIMEOUT_S + 2 * side.period_s
+    silence = [(t, command) for t, command in _commands(side) if last < t < back]
+    zero_by = {
+        motor: min((t for t, command in silence if command[motor] == 0), default=math.inf)
+        for motor in range(4)
+    }
+    late = {motor + 1: t - last for motor, t in zero_by.items() if t > deadline}
+    assert not late, (
+        f"{side.name}: {what}: motor(s) {sorted(late)} sent no zero within "
+        f"{1000 * (deadline - last):.0f} ms of PX4's last output (first zero after, ms: "
+        f"{[round(1000 * t, 1) for t in late.values()]})"
+    )
+    # The input held since PX4's last output does not change: a motor sent zero (its idle
+    # value, or the failsafe) stays at zero, and every one does after the deadline.
+    nonzero = [
+        round(t - last, 4)
+        for t, command in silence
+        if any(value and (t > deadline or t > zero_by[m]) for m, value in enumerate(command))
+    ]
+    assert not nonzero, (
+        f"{side.name}: {what}: {len(nonzero)} non-zero frames after the motor's zero or the "
+        f"failsafe deadline and before PX4's next output ({back - last:.3f} s after its "
+        f"last), the first {nonzero[:3]} s after its last output"
+    )
+    safe = max(zero_by.values())
     measured(
         f"PX4 {side.name}: {what}: safe after the last output, ms", round((safe - last) * 1000, 1)
     )
-    assert safe - last <= deadline, (
-        f"{side.name}: {what}: first safe frame {1000 * (safe - last):.1f} ms after PX4's last "
-        f"output (deadline {1000 * deadline:.0f} ms)"
-    )
-    return safe
+    return safe, deadline
 
 
 @pytest.mark.parametrize("name", SIDES)
 def test_stall_of_px4_goes_safe_in_time(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
-    safe = _safe_in_time(side, sysid, ev["stall"], "SIGSTOP")
-    # Nothing but safe frames until PX4 sends again.
+    _, deadline = _safe_in_time(side, sysid, ev["stall"], ev["resume"] - 0.01, "SIGSTOP")
+    # The loop went on sending through the stall (its safe values, checked above).
     times, _ = _outputs(side, sysid)
     first_new = times[bisect.bisect_right(times, ev["resume"] - 0.01)]
-    during = [th for t, th in _commands(side) if safe <= t < first_new]
-    assert during and not any(any(th) for th in during), f"{name}: non-zero during the stall"
+    during = [t for t, _ in _commands(side) if deadline < t < first_new]
+    assert len(during) > (first_new - deadline) / side.period_s / 2, (
+        f"{name}: {len(during)} frames in the {first_new - deadline:.2f} s of the stall "
+        "after the failsafe"
+    )
 
 
 @pytest.mark.parametrize("name", SIDES)
@@ -702,9 +712,18 @@ def test_motors_run_again_after_the_stall(flight: Flight, name: str) -> None:
 def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
     assert side.bridge is not None and side.bridge.alive(), f"{name}: the bridge died"
-    safe = _safe_in_time(side, sysid, ev["kill"], "kill")
-    nonzero_while_down = [t for t, th in _commands(side) if safe <= t <= ev["arm_cmd"] and any(th)]
-    assert nonzero_while_down == [], f"{name}: non-zero frames while PX4 was down or disarmed"
+    _, deadline = _safe_in_time(side, sysid, ev["kill"], ev["restart"], "kill")
+    # Zero from the failsafe through PX4's restart until it is armed again.
+    nonzero_while_down = [
+        round(t - ev["kill"], 3)
+        for t, th in _commands(side)
+        if deadline < t <= ev["arm_cmd"] and any(th)
+    ]
+    assert nonzero_while_down == [], (
+        f"{name}: non-zero frames while PX4 was down or disarmed, s after the kill: "
+        f"{nonzero_while_down[:5]} (restart at {ev['restart'] - ev['kill']:.3f}, re-armed at "
+        f"{ev['arm_cmd'] - ev['kill']:.3f})"
+    )
     times, values = _outputs(side, sysid)
     after = [t for t in times if t >= ev["restart"]]
     assert after, f"{name}: no output reached the bridge after the restart"
