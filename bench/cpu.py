@@ -2,7 +2,7 @@
 
 Run: ``python bench/cpu.py [--seconds 20] [--runs 3] [--protocols ckesc ft]
 [--telemetry off on] [--loads idle busy2] [--contenders plain fixed immediate]
-[--profile] [--bridge-source DIR] [--json FILE]``
+[--profile] [--perf] [--bridge-source DIR] [--json FILE]``
 
 Contenders, each fed by the same autopilot and timed by the same observer:
 
@@ -59,6 +59,15 @@ every thread, over the measured window only: each thread's CPU, and the top func
 own CPU and by the CPU under them (a deterministic profiler slows what it watches: the shares
 tell where the time goes, the CPU column of the runs before tells how much).
 
+``--perf``: in every run, Linux's ``perf record`` samples the contender's processes (999 Hz,
+every thread) over the measured window; under each case, the share of each process's samples
+(%) that fell in the Python interpreter (libpython), the kernel, the C library (and the vDSO's
+clock reads), and the rest (C extensions: msgpack, _socket, select ...). It tells whether the
+CPU is the Python a process runs or the system calls and wake-ups it makes (the sampling adds a
+little to the CPU columns of those runs). Needs ``perf`` (Debian: ``sudo apt-get install
+linux-perf``) and the right to sample those processes (``kernel.perf_event_paranoid`` at most 1,
+or root).
+
 ``--bridge-source DIR`` runs the bridge from another checkout (``git worktree add /tmp/before
 <commit>``, or ``git archive <commit> | tar -x -C /tmp/before``) with this bench; ``--before DIR``
 with the contenders ``fixed-before`` and ``immediate-before`` runs that checkout beside this one,
@@ -77,6 +86,7 @@ import json
 import multiprocessing
 import os
 import select
+import shutil
 import signal
 import socket
 import statistics
@@ -85,7 +95,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager, suppress
+from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -456,6 +466,7 @@ class Run:
     switches_per_s: float = float("nan")  # context switches, all the contender's processes
     problems: list[str] = field(default_factory=list)
     profile: dict[str, list[str]] = field(default_factory=dict)
+    perf: dict[str, dict[str, float]] = field(default_factory=dict)  # process -> where -> %
 
 
 def run_once(
@@ -540,13 +551,19 @@ def run_once(
         t0_wall, t0 = time.time(), time.monotonic()
         cpu0 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
         switches0 = context_switches(everything)
-        if daemon is not None:
-            sleep_watching(args.seconds, daemon, log_path)
-        else:
-            time.sleep(args.seconds)
+        sampled = {"main": [main_pid], "loop": loops} if loops else {"main": [main_pid]}
+        recording: AbstractContextManager[dict[str, Path]] = (
+            perf_record(sampled, tmp / "perf") if args.perf else nullcontext({})
+        )
+        with recording as samples:
+            if daemon is not None:
+                sleep_watching(args.seconds, daemon, log_path)
+            else:
+                time.sleep(args.seconds)
         elapsed = time.monotonic() - t0
         cpu1 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
         switches1 = context_switches(everything)
+        run.perf = {process: perf_shares(path) for process, path in samples.items()}
         t1_wall = time.time()
         run.cpu_main_pct = 100 * (cpu1[0] - cpu0[0]) / elapsed
         run.cpu_loop_pct = 100 * (cpu1[1] - cpu0[1]) / elapsed if loops else float("nan")
@@ -662,6 +679,85 @@ def profile_report(directory: Path, main_pid: int, top: int) -> dict[str, list[s
     return report
 
 
+# -- perf ---------------------------------------------------------------------------------
+
+PERF_WHERE = ("interpreter", "kernel", "libc", "other")
+"""Where perf's samples fell, in the order printed (:func:`perf_where`)."""
+
+
+@contextmanager
+def perf_record(processes: dict[str, list[int]], directory: Path) -> Iterator[dict[str, Path]]:
+    """``perf record`` of each named group of processes while the block runs; yields the data
+    file of each name (written once the block ends)."""
+    directory.mkdir(exist_ok=True)
+    paths = {name: directory / f"{name}.data" for name in processes}
+    recorders = [
+        subprocess.Popen(
+            [
+                str(shutil.which("perf")),
+                "record",
+                "-q",
+                "-F",
+                "999",
+                "-o",
+                str(paths[name]),
+                "-p",
+                ",".join(str(pid) for pid in pids),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for name, pids in processes.items()
+    ]
+    try:
+        yield paths
+    finally:
+        for recorder in recorders:
+            recorder.send_signal(signal.SIGINT)  # perf writes its file and exits
+        for recorder in recorders:
+            recorder.wait(30)
+
+
+def perf_where(dso: str) -> str:
+    """Where a sample in the shared object ``dso`` fell, one of :data:`PERF_WHERE`."""
+    if dso.startswith("[kernel"):
+        return "kernel"
+    if "libpython" in dso or dso.startswith("python"):
+        return "interpreter"
+    if dso == "[vdso]" or dso.startswith(("libc.so", "libc-", "libm.so", "ld-linux")):
+        return "libc"
+    return "other"
+
+
+def perf_shares(path: Path) -> dict[str, float]:
+    """The share (%) of the samples in ``path`` that fell in each of :data:`PERF_WHERE`."""
+    report = subprocess.run(
+        [
+            str(shutil.which("perf")),
+            "report",
+            "-i",
+            str(path),
+            "--stdio",
+            "--sort",
+            "dso",
+            "-g",
+            "none",
+            "--percent-limit",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    shares = dict.fromkeys(PERF_WHERE, 0.0)
+    for line in report.splitlines():
+        share, _, dso = line.strip().partition("%")
+        with suppress(ValueError):
+            shares[perf_where(dso.strip())] += float(share)
+    path.unlink()
+    return shares
+
+
 # -- the table ------------------------------------------------------------------------------
 
 
@@ -695,6 +791,17 @@ def print_row(row: Row) -> None:
         f"{num(m('telemetry_per_s'), '.0f', 7)} {num(m('switches_per_s'), '.0f', 7)}",
         flush=True,
     )
+
+
+def print_perf(row: Row) -> None:
+    """Where each of the contender's processes spent its CPU (perf), medians over the runs."""
+    for process in ("main", "loop"):
+        shares = [run.perf[process] for run in row.runs if process in run.perf]
+        if shares:
+            where = ", ".join(
+                f"{name} {statistics.median(s[name] for s in shares):.0f} %" for name in PERF_WHERE
+            )
+            print(f"  perf, {row.contender} {process} process: {where}", flush=True)
 
 
 def print_ratios(rows: dict[str, Row]) -> None:
@@ -747,7 +854,10 @@ def main() -> int:
         default=["plain", "fixed", "immediate"],
     )
     parser.add_argument(
-        "--profile", action="store_true", help="one more fixed-mode run per case under py-spy"
+        "--profile", action="store_true", help="one more fixed-mode run per case under yappi"
+    )
+    parser.add_argument(
+        "--perf", action="store_true", help="where each process's CPU went, from perf's samples"
     )
     parser.add_argument("--profile-top", type=int, default=15, help="functions listed")
     parser.add_argument("--bridge-source", type=Path, metavar="DIR", help="run that checkout")
@@ -762,6 +872,8 @@ def main() -> int:
     args.profiling = False
     if any(c.endswith("-before") for c in args.contenders) and args.before is None:
         parser.error("the -before contenders need --before DIR")
+    if args.perf and shutil.which("perf") is None:
+        parser.error("--perf needs perf: sudo apt-get install linux-perf")
     if args.profile and importlib.util.find_spec("yappi") is None:
         parser.error("--profile needs yappi: .venv/bin/pip install -e '.[bench]'")
     signal.signal(signal.SIGTERM, raise_interrupt)
@@ -812,6 +924,9 @@ def main() -> int:
                     print_row(row)
                     all_rows[(protocol, load, case.telemetry, row.contender)] = row
                 print_ratios(rows)
+                if args.perf:
+                    for row in rows.values():
+                        print_perf(row)
                 if args.profile and "fixed" in args.contenders:
                     args.profiling = True
                     try:
