@@ -694,7 +694,7 @@ def perf_record(processes: dict[str, list[int]], directory: Path) -> Iterator[di
     recorders = [
         subprocess.Popen(
             [
-                str(shutil.which("perf")),
+                "perf",
                 "record",
                 "-q",
                 "-F",
@@ -733,7 +733,7 @@ def perf_shares(path: Path) -> dict[str, float]:
     """The share (%) of the samples in ``path`` that fell in each of :data:`PERF_WHERE`."""
     report = subprocess.run(
         [
-            str(shutil.which("perf")),
+            "perf",
             "report",
             "-i",
             str(path),
