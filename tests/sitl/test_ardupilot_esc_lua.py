@@ -147,6 +147,26 @@ class Run:
             if from_autopilot(m) and t <= end
         ]
 
+    def ap_telemetry_sent(self, after_boot_s: float) -> list[tuple[float, float, Any]]:
+        """ArduCopter's own ESC_TELEMETRY_1_TO_4 sent after ``after_boot_s`` on its boot clock,
+        each with the span of that clock it was sent in: from the SYSTEM_TIME the autopilot sent
+        before it to the one after (both streamed at 10 Hz on the same link, so in the order
+        sent). On the autopilot's own clock, not the ground station's receive times, which a
+        loaded machine may hold up and bunch."""
+        sent: list[tuple[float, float, Any]] = []
+        before_s: float | None = None
+        waiting: list[Any] = []
+        for _, m in self.gcs.received():
+            if not from_autopilot(m):
+                continue
+            if m.get_type() == "SYSTEM_TIME":
+                now_s = m.time_boot_ms / 1000
+                sent.extend((before_s, now_s, w) for w in waiting if before_s is not None)
+                before_s, waiting = now_s, []
+            elif m.get_type() == "ESC_TELEMETRY_1_TO_4" and (before_s or 0.0) >= after_boot_s:
+                waiting.append(m)
+        return sent
+
     def log_records(self, kind: str, start: float = 0.0, end: float = float("inf")) -> list[Any]:
         return [
             m for m in self.log if m.get_type() == kind and start <= self.from_boot(m.TimeUS) <= end
@@ -512,13 +532,18 @@ def test_silent_escs_go_stale(run: Run) -> None:
     # loaded machine (one more count came in a CI run beside two busy processes).
     settled = [m for t, m in after if t >= fed_until + 0.25 + 1 / AP_TELEMETRY_HZ]
     assert len({tuple(m.count) for m in settled}) == 1, "ArduCopter's ESC counters moved on"
+    # The rpm's hold and timeout on ArduPilot's clock: from its last ESC record of the motor
+    # (logged as an update arrives), to what it sent before and after a second had passed.
     motor = run.test_motor
-    held = [m.rpm[motor] for t, m in after if t < last + AP_RPM_TIMEOUT_S - 0.1]
+    updated_s = max(r.TimeUS / 1e6 for r in run.log_records("ESC") if r.Instance == motor)
+    sent = run.ap_telemetry_sent(updated_s)
+    held = [m.rpm[motor] for _, end_s, m in sent if end_s <= updated_s + AP_RPM_TIMEOUT_S - 0.1]
     assert held and min(held) > 5000, f"the rpm was not held until the timeout: {held}"
-    stale_by = fed_until + AP_RPM_TIMEOUT_S + 1 / AP_TELEMETRY_HZ + SLACK_S
-    stale = [(t, m.rpm[motor]) for t, m in after if t > stale_by]
-    assert stale and all(rpm == 0 for _, rpm in stale), (
-        f"ESC {motor + 1}'s rpm after ArduPilot's timeout: {[r for _, r in stale][:10]}"
+    stale = [
+        m.rpm[motor] for start_s, _, m in sent if start_s >= updated_s + AP_RPM_TIMEOUT_S + SLACK_S
+    ]
+    assert stale and all(rpm == 0 for rpm in stale), (
+        f"ESC {motor + 1}'s rpm after ArduPilot's timeout: {stale[:10]}"
     )
     went = next(t for t, m in after if m.rpm[motor] == 0)
     records = run.log_records("ESC", fed_until + run.drift_s + SLACK_S)
