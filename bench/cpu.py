@@ -2,7 +2,7 @@
 
 Run: ``python bench/cpu.py [--seconds 20] [--runs 3] [--protocols ckesc ft]
 [--telemetry off on] [--loads idle busy2] [--contenders plain fixed immediate]
-[--profile] [--perf] [--bridge-source DIR] [--json FILE]``
+[--profile] [--perf] [--perf-python] [--bridge-source DIR] [--json FILE]``
 
 Contenders, each fed by the same autopilot and timed by the same observer:
 
@@ -68,6 +68,14 @@ little to the CPU columns of those runs). Needs ``perf`` (Debian: ``sudo apt-get
 linux-perf``) and the right to sample those processes (``kernel.perf_event_paranoid`` at most 1,
 or root).
 
+``--perf-python``: ``--perf`` with each sample's call stack (perf's DWARF unwinding) and
+Python's perf maps (``PYTHONPERFSUPPORT=1``, Python 3.12 or later: run the bench from a 3.12
+environment, whose ``esc-bridge`` it starts), so that under each case every process's samples
+are also shared out by the innermost Python function on their stack, C calls and the kernel
+under it included (a ``sendto`` to the function that called it): the functions with
+``--profile-top`` of the largest shares, averaged over the runs. Unwinding copies each sample's
+stack, which adds more to the CPU columns than ``--perf`` alone.
+
 ``--bridge-source DIR`` runs the bridge from another checkout (``git worktree add /tmp/before
 <commit>``, or ``git archive <commit> | tar -x -C /tmp/before``) with this bench; ``--before DIR``
 with the contenders ``fixed-before`` and ``immediate-before`` runs that checkout beside this one,
@@ -94,6 +102,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext, suppress
 from dataclasses import asdict, dataclass, field
@@ -467,6 +476,8 @@ class Run:
     problems: list[str] = field(default_factory=list)
     profile: dict[str, list[str]] = field(default_factory=dict)
     perf: dict[str, dict[str, float]] = field(default_factory=dict)  # process -> where -> %
+    # process -> innermost Python function -> % of the samples (--perf-python)
+    perf_functions: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def run_once(
@@ -494,7 +505,8 @@ def run_once(
                 target=plain_worker if contender == "plain" else floor_worker,
                 args=(case.protocol, mavlink_port, can_port, case.escs, stop_plain, plain_ready),
             )
-            plain.start()
+            with python_perf_maps(args.perf_python):
+                plain.start()
             procs.add_worker(plain, stop_plain)
             if not plain_ready.wait(START_TIMEOUT_S):
                 raise RuntimeError(f"the {contender} contender did not start")
@@ -503,6 +515,8 @@ def run_once(
             latency, _, before = contender.partition("-")
             source = args.before if before else args.bridge_source
             prefix, env = bridge_prefix(source)
+            if args.perf_python:
+                env[PERF_MAPS_ENV] = "1"
             if args.profiling:
                 (tmp / "profiles").mkdir(exist_ok=True)
                 path = [str(PROFILE_HOOK), env.get("PYTHONPATH", "")]
@@ -553,7 +567,7 @@ def run_once(
         switches0 = context_switches(everything)
         sampled = {"main": [main_pid], "loop": loops} if loops else {"main": [main_pid]}
         recording: AbstractContextManager[dict[str, Path]] = (
-            perf_record(sampled, tmp / "perf") if args.perf else nullcontext({})
+            perf_record(sampled, tmp / "perf", args.perf_python) if args.perf else nullcontext({})
         )
         with recording as samples:
             if daemon is not None:
@@ -563,7 +577,14 @@ def run_once(
         elapsed = time.monotonic() - t0
         cpu1 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
         switches1 = context_switches(everything)
+        if args.perf_python:
+            run.perf_functions = {
+                process: perf_functions(path) for process, path in samples.items()
+            }
         run.perf = {process: perf_shares(path) for process, path in samples.items()}
+        if args.perf_python:
+            for pid in everything:
+                Path(f"/tmp/perf-{pid}.map").unlink(missing_ok=True)  # Python's perf maps
         t1_wall = time.time()
         run.cpu_main_pct = 100 * (cpu1[0] - cpu0[0]) / elapsed
         run.cpu_loop_pct = 100 * (cpu1[1] - cpu0[1]) / elapsed if loops else float("nan")
@@ -686,9 +707,12 @@ PERF_WHERE = ("interpreter", "kernel", "libc", "other")
 
 
 @contextmanager
-def perf_record(processes: dict[str, list[int]], directory: Path) -> Iterator[dict[str, Path]]:
-    """``perf record`` of each named group of processes while the block runs; yields the data
-    file of each name (written once the block ends)."""
+def perf_record(
+    processes: dict[str, list[int]], directory: Path, stacks: bool = False
+) -> Iterator[dict[str, Path]]:
+    """``perf record`` of each named group of processes while the block runs (``stacks``: with
+    each sample's call stack); yields the data file of each name (written once the block
+    ends)."""
     directory.mkdir(exist_ok=True)
     paths = {name: directory / f"{name}.data" for name in processes}
     recorders = [
@@ -699,6 +723,7 @@ def perf_record(processes: dict[str, list[int]], directory: Path) -> Iterator[di
                 "-q",
                 "-F",
                 "999",
+                *(["--call-graph", "dwarf,16384"] if stacks else []),
                 "-o",
                 str(paths[name]),
                 "-p",
@@ -740,6 +765,7 @@ def perf_shares(path: Path) -> dict[str, float]:
             "--stdio",
             "--sort",
             "dso",
+            "--no-children",
             "-g",
             "none",
             "--percent-limit",
@@ -756,6 +782,41 @@ def perf_shares(path: Path) -> dict[str, float]:
             shares[perf_where(dso.strip())] += float(share)
     path.unlink()
     return shares
+
+
+PERF_MAPS_ENV = "PYTHONPERFSUPPORT"
+"""Set to 1, Python 3.12 and later name each Python function in a perf map for perf."""
+
+
+@contextmanager
+def python_perf_maps(on: bool) -> Iterator[None]:
+    """Python processes started in the block write perf maps (when ``on``)."""
+    if on:
+        os.environ[PERF_MAPS_ENV] = "1"
+    try:
+        yield
+    finally:
+        os.environ.pop(PERF_MAPS_ENV, None)
+
+
+def perf_functions(path: Path) -> dict[str, float]:
+    """The share (%) of the samples in ``path`` whose innermost Python function is each one
+    (``<no Python>``: none on the stack, or its unwinding stopped short of one)."""
+    script = subprocess.run(
+        ["perf", "script", "-i", str(path), "-F", "tid,ip,sym"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    counts: Counter[str] = Counter()
+    for sample in script.split("\n\n"):
+        # A sample: its thread's line, then a line a frame, innermost first; Python's frames
+        # are named "py::<qualified name>:<file>".
+        frames = [line.split("py::", 1)[1] for line in sample.splitlines() if "py::" in line]
+        if sample.strip():
+            counts[frames[0].rsplit(":", 1)[0] if frames else "<no Python>"] += 1
+    total = sum(counts.values())
+    return {name: 100 * n / total for name, n in counts.items()} if total else {}
 
 
 # -- the table ------------------------------------------------------------------------------
@@ -793,7 +854,7 @@ def print_row(row: Row) -> None:
     )
 
 
-def print_perf(row: Row) -> None:
+def print_perf(row: Row, top_n: int) -> None:
     """Where each of the contender's processes spent its CPU (perf), medians over the runs."""
     for process in ("main", "loop"):
         shares = [run.perf[process] for run in row.runs if process in run.perf]
@@ -802,6 +863,17 @@ def print_perf(row: Row) -> None:
                 f"{name} {statistics.median(s[name] for s in shares):.0f} %" for name in PERF_WHERE
             )
             print(f"  perf, {row.contender} {process} process: {where}", flush=True)
+        functions = [
+            run.perf_functions[process] for run in row.runs if process in run.perf_functions
+        ]
+        if functions:
+            mean = {
+                name: statistics.fmean(f.get(name, 0.0) for f in functions)
+                for name in set().union(*functions)
+            }
+            top = sorted(mean.items(), key=lambda item: -item[1])[:top_n]
+            listed = ", ".join(f"{name} {share:.1f} %" for name, share in top)
+            print(f"  perf, {row.contender} {process} process, Python: {listed}", flush=True)
 
 
 def print_ratios(rows: dict[str, Row]) -> None:
@@ -859,6 +931,11 @@ def main() -> int:
     parser.add_argument(
         "--perf", action="store_true", help="where each process's CPU went, from perf's samples"
     )
+    parser.add_argument(
+        "--perf-python",
+        action="store_true",
+        help="--perf, and the Python functions the samples fell in (Python 3.12 or later)",
+    )
     parser.add_argument("--profile-top", type=int, default=15, help="functions listed")
     parser.add_argument("--bridge-source", type=Path, metavar="DIR", help="run that checkout")
     parser.add_argument(
@@ -872,6 +949,14 @@ def main() -> int:
     args.profiling = False
     if any(c.endswith("-before") for c in args.contenders) and args.before is None:
         parser.error("the -before contenders need --before DIR")
+    if args.perf_python:
+        if sys.version_info < (3, 12):
+            parser.error(
+                "--perf-python needs Python 3.12 or later (perf maps), e.g. python3.12 -m venv "
+                ".venv312 && .venv312/bin/pip install -e '.[bench]', then .venv312/bin/python "
+                "bench/cpu.py --perf-python"
+            )
+        args.perf = True
     if args.perf and shutil.which("perf") is None:
         parser.error("--perf needs perf: sudo apt-get install linux-perf")
     if args.profile and importlib.util.find_spec("yappi") is None:
@@ -926,7 +1011,7 @@ def main() -> int:
                 print_ratios(rows)
                 if args.perf:
                     for row in rows.values():
-                        print_perf(row)
+                        print_perf(row, args.profile_top)
                 if args.profile and "fixed" in args.contenders:
                     args.profiling = True
                     try:
