@@ -577,14 +577,13 @@ def run_once(
         elapsed = time.monotonic() - t0
         cpu1 = (cpu_seconds([main_pid]), cpu_seconds(loops), cpu_seconds(everything))
         switches1 = context_switches(everything)
-        if args.perf_python:
+        if args.perf_python:  # before perf_shares, which removes the data files
             run.perf_functions = {
                 process: perf_functions(path) for process, path in samples.items()
             }
-        run.perf = {process: perf_shares(path) for process, path in samples.items()}
-        if args.perf_python:
             for pid in everything:
                 Path(f"/tmp/perf-{pid}.map").unlink(missing_ok=True)  # Python's perf maps
+        run.perf = {process: perf_shares(path) for process, path in samples.items()}
         t1_wall = time.time()
         run.cpu_main_pct = 100 * (cpu1[0] - cpu0[0]) / elapsed
         run.cpu_loop_pct = 100 * (cpu1[1] - cpu0[1]) / elapsed if loops else float("nan")
@@ -952,9 +951,8 @@ def main() -> int:
     if args.perf_python:
         if sys.version_info < (3, 12):
             parser.error(
-                "--perf-python needs Python 3.12 or later (perf maps), e.g. python3.12 -m venv "
-                ".venv312 && .venv312/bin/pip install -e '.[bench]', then .venv312/bin/python "
-                "bench/cpu.py --perf-python"
+                "--perf-python needs Python 3.12 or later (perf maps): run the bench from a 3.12 "
+                "environment (docs/running.md, 'Measured: CPU against the plain loop', says how)"
             )
         args.perf = True
     if args.perf and shutil.which("perf") is None:
