@@ -331,10 +331,12 @@ def test_tick_held_up_before_sending_carries_the_input_that_arrived_meanwhile(ri
     rig.loop.read(taken)
     rig.outputs([1000, 1250, 1500, 1750], count=1)  # arrives while the loop is held up
     time.sleep(0.05)  # twenty periods at 400 Hz, well inside the input timeout
+    # Counted from here: a loaded machine may hold up the tick before as well (seen in CI).
+    before = rig.stats["redecided"]
     rig.loop.tick(taken, taken)
     assert _throttles(rig.observer, 1) == [(0, 500, 1000, 1500)]
     assert rig.state() == LoopState.RUNNING
-    assert rig.stats["redecided"] == 1
+    assert rig.stats["redecided"] - before == 1
 
 
 def test_tick_held_up_while_its_frame_leaves_is_counted_as_left_late(rig: Rig) -> None:
