@@ -271,8 +271,11 @@ def _fly(fl: Flight) -> None:
     ev["ground_arm_cmd"] = time.monotonic()
     gcs.command(target, 400, [1], 20, "arm on the ground")
     time.sleep(1.5)
+    # Each signal bracketed: a loaded machine may hold the test's thread up between reading
+    # the clock and sending it (PX4 was seen sending 1.16 s past the reading before a SIGSTOP).
     ev["kill"] = time.monotonic()
     px4.kill()
+    ev["killed"] = time.monotonic()
     time.sleep(1.0)
     ev["restart"] = time.monotonic()
     px4.start()
@@ -290,6 +293,7 @@ def _fly(fl: Flight) -> None:
     time.sleep(HOVER_S)
     ev["stall"] = time.monotonic()
     px4.pause()
+    ev["stalled"] = time.monotonic()
     time.sleep(STALL_S)
     px4.resume()
     ev["resume"] = time.monotonic()
@@ -634,8 +638,8 @@ def _running_before(side: Side, last: float, what: str) -> None:
 def _safe_in_time(
     side: Side, sysid: int, lost_at: float, back_at: float, what: str
 ) -> tuple[float, float]:
-    """PX4 fell silent at ``lost_at`` with the motors running, and its first output forwarded
-    at or after ``back_at`` ended the silence. From its last output before that silence,
+    """PX4 fell silent by ``lost_at`` (its signal sent) with the motors running, and its first
+    output forwarded at or after ``back_at`` ended the silence. From its last output before it,
     every motor is sent zero within input_timeout + 2 output periods, and nothing but zero
     follows until PX4 sends again (a motor PX4 idles at 1000 µs is sent zero before then:
     that is not yet the failsafe, but it stays at zero). Returns (the first frame by which every
@@ -645,7 +649,9 @@ def _safe_in_time(
     assert 0 < k < len(times), f"{side.name}: no output before and after the {what}"
     # Bytes PX4 wrote just before the signal may reach the tap a little after it.
     last, back = times[k - 1], times[k]
-    assert last - lost_at < 0.1, f"{side.name}: PX4 sent on for {last - lost_at:.2f} s"
+    assert last - lost_at < 0.1, (
+        f"{side.name}: PX4 sent on for {last - lost_at:.2f} s after the {what}'s signal"
+    )
     _running_before(side, last, what)
     deadline = last + INPUT_TIMEOUT_S + 2 * side.period_s
     silence = [(t, command) for t, command in _commands(side) if last < t < back]
@@ -681,7 +687,7 @@ def _safe_in_time(
 @pytest.mark.parametrize("name", SIDES)
 def test_stall_of_px4_goes_safe_in_time(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
-    _, deadline = _safe_in_time(side, sysid, ev["stall"], ev["resume"] - 0.01, "SIGSTOP")
+    _, deadline = _safe_in_time(side, sysid, ev["stalled"], ev["resume"] - 0.01, "SIGSTOP")
     # The loop went on sending through the stall (its safe values, checked above).
     times, _ = _outputs(side, sysid)
     first_new = times[bisect.bisect_right(times, ev["resume"] - 0.01)]
@@ -712,7 +718,7 @@ def test_motors_run_again_after_the_stall(flight: Flight, name: str) -> None:
 def test_kill_and_restart_goes_safe_and_reconnects(flight: Flight, name: str) -> None:
     side, ev, sysid = flight.sides[name], flight.events, flight.px4.system_id
     assert side.bridge is not None and side.bridge.alive(), f"{name}: the bridge died"
-    _, deadline = _safe_in_time(side, sysid, ev["kill"], ev["restart"], "kill")
+    _, deadline = _safe_in_time(side, sysid, ev["killed"], ev["restart"], "kill")
     # Zero from the failsafe through PX4's restart until it is armed again.
     nonzero_while_down = [
         round(t - ev["kill"], 3)
