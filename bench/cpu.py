@@ -49,9 +49,10 @@ Measured over ``--seconds`` after ``--warmup`` seconds of armed input:
   than its work (``bench/tick.py``).
 
 Each cell is the median over the runs of each run's figure. Under each case: the bridge's
-total CPU over the plain script's; with and without telemetry run, the main process's CPU per
-telemetry frame (the difference over the frame rate). The load average is printed with each
-case: on a shared machine compare within one run only.
+total CPU over the plain script's, and the same per frame sent (each run's CPU over its rate,
+medians: the plain script runs slow, and sends fewer frames for its CPU); with and without
+telemetry run, the main process's CPU per telemetry frame (the difference over the frame rate).
+The load average is printed with each case: on a shared machine compare within one run only.
 
 ``--profile``: after the runs of each case, one more run of the bridge in fixed mode under
 yappi (the ``bench`` extra; ``bench/profile_hook``) with the CPU clock, in both processes and
@@ -832,6 +833,13 @@ class Row:
         values = [v for v in values if v == v]
         return statistics.median(values) if values else float("nan")
 
+    def median_per_frame(self) -> float:
+        """The median over the runs of each run's CPU (all processes) per frame a second of a
+        stream: % of a core per Hz."""
+        values = [run.cpu_total_pct / run.rate_hz for run in self.runs if run.rate_hz > 0]
+        values = [v for v in values if v == v]
+        return statistics.median(values) if values else float("nan")
+
 
 HEADER = (
     f"{'contender':<10} {'runs':>4} {'CPU %':>6} {'main %':>6} {'loop %':>6} {'rate Hz':>7} "
@@ -879,16 +887,20 @@ def print_ratios(rows: dict[str, Row]) -> None:
     plain = rows.get("plain")
     if plain is None:
         return
-    base = plain.median("cpu_total_pct")
-    parts = []
+    base, base_per_frame = plain.median("cpu_total_pct"), plain.median_per_frame()
+    parts, per_frame = [], []
     for contender in ("floor", "fixed", "immediate", "fixed-before", "immediate-before"):
         if (row := rows.get(contender)) is not None:
             parts.append(
                 f"{contender} {row.median('cpu_total_pct') / base:.2f}x "
                 f"(loop alone {row.median('cpu_loop_pct') / base:.2f}x)"
             )
+            per_frame.append(f"{contender} {row.median_per_frame() / base_per_frame:.2f}x")
     if parts:
         print(f"  bridge CPU / plain script's: {', '.join(parts)}", flush=True)
+        # The plain script's sleep(period) drifts (it sends 8-18 % fewer frames), and its CPU
+        # follows its frames: per frame, the contenders are compared at the same work.
+        print(f"  per frame sent (CPU / rate): {', '.join(per_frame)}", flush=True)
 
 
 def print_per_frame(rows: dict[tuple[str, str, bool, str], Row]) -> None:
