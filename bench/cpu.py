@@ -104,7 +104,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -829,16 +829,18 @@ class Row:
     runs: list[Run]
 
     def median(self, name: str) -> float:
-        values = [getattr(run, name) for run in self.runs]
-        values = [v for v in values if v == v]
-        return statistics.median(values) if values else float("nan")
+        return _median(getattr(run, name) for run in self.runs)
 
-    def median_per_frame(self) -> float:
+    def median_per_frame_sent(self) -> float:
         """The median over the runs of each run's CPU (all processes) per frame a second of a
         stream: % of a core per Hz."""
-        values = [run.cpu_total_pct / run.rate_hz for run in self.runs if run.rate_hz > 0]
-        values = [v for v in values if v == v]
-        return statistics.median(values) if values else float("nan")
+        return _median(run.cpu_total_pct / run.rate_hz for run in self.runs if run.rate_hz > 0)
+
+
+def _median(values: Iterable[float]) -> float:
+    """The median of ``values`` but NaN (a figure a run could not give); NaN if none."""
+    known = [v for v in values if v == v]
+    return statistics.median(known) if known else float("nan")
 
 
 HEADER = (
@@ -887,7 +889,7 @@ def print_ratios(rows: dict[str, Row]) -> None:
     plain = rows.get("plain")
     if plain is None:
         return
-    base, base_per_frame = plain.median("cpu_total_pct"), plain.median_per_frame()
+    base, base_per_frame = plain.median("cpu_total_pct"), plain.median_per_frame_sent()
     parts, per_frame = [], []
     for contender in ("floor", "fixed", "immediate", "fixed-before", "immediate-before"):
         if (row := rows.get(contender)) is not None:
@@ -895,7 +897,7 @@ def print_ratios(rows: dict[str, Row]) -> None:
                 f"{contender} {row.median('cpu_total_pct') / base:.2f}x "
                 f"(loop alone {row.median('cpu_loop_pct') / base:.2f}x)"
             )
-            per_frame.append(f"{contender} {row.median_per_frame() / base_per_frame:.2f}x")
+            per_frame.append(f"{contender} {row.median_per_frame_sent() / base_per_frame:.2f}x")
     if parts:
         print(f"  bridge CPU / plain script's: {', '.join(parts)}", flush=True)
         # The plain script's sleep(period) drifts (it sends 8-18 % fewer frames), and its CPU
