@@ -117,8 +117,15 @@ def test_a_failsafe_and_a_failing_esc_are_drawn(
         ]
         for esc in flight.escs
     }
-    assert failing[2] and all(r.flags & FAILURE_OVER_TEMPERATURE for r in failing[2]), failing
-    assert not failing[1] and not failing[3] and not failing[4], failing
+    # What told the runs apart, for a failure's message.
+    when = {
+        "armed": armed.start_s,
+        "failsafe": failsafe.start_s,
+        **{f"ESC {esc.node_id}'s first report": first_report_s(esc) for esc in flight.escs},
+    }
+    told = f"{failing}; {when}"
+    assert failing[2] and all(r.flags & FAILURE_OVER_TEMPERATURE for r in failing[2]), told
+    assert not failing[1] and not failing[3] and not failing[4], told
 
     result = subprocess.run(
         [ESC_BRIDGE, "plot", str(record)], capture_output=True, text=True, timeout=60, check=False
