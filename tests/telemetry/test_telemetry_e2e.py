@@ -154,11 +154,24 @@ def test_esc_status_info_and_telemetry_for_every_esc(
                 if index + slot + 1 <= n and index + slot + 1 not in silent
             ]
 
+            # Each ESC's values come in three messages (CKESC's MSG1: rpm; MSG2: volts, amps and
+            # the MOSFET's temperature; MSG3: the others), which on a loaded machine may reach the
+            # bridge on either side of an ESC_STATUS or ESC_INFO: the first with every reporting
+            # ESC's values is waited for, and its values checked.
             def all_reporting(msg: Any, first: int = index, slots: list[int] = reporting) -> bool:
-                return bool(msg.index == first and all(msg.rpm[s] != 0 for s in slots))
+                return bool(
+                    msg.index == first
+                    and all(msg.rpm[s] != 0 and msg.voltage[s] != 0 for s in slots)
+                )
 
-            def all_online(msg: Any, first: int = index, online: int = mask) -> bool:
-                return bool(msg.index == first and msg.info == online)
+            def all_online(
+                msg: Any, first: int = index, online: int = mask, slots: list[int] = reporting
+            ) -> bool:
+                return bool(
+                    msg.index == first
+                    and msg.info == online
+                    and all(msg.temperature[s] != INT16_MAX for s in slots)
+                )
 
             status = receiver.wait_for("ESC_STATUS", all_reporting, timeout_s=STARTUP_TIMEOUT_S)
             info = receiver.wait_for("ESC_INFO", all_online, timeout_s=10)
