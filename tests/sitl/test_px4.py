@@ -823,8 +823,18 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
     # The ones sent during the stall wait in PX4's socket and may reach the ground station
     # after the window's gap: the most that can come is the stall's share too.
     most = 2 * (hover_s + ev["resume"] + 0.5 - ev["stall"]) + 2
+    # Where the others went, for a failure's message: to the ground station late (taken by the
+    # bridge in the window, by their time_usec, received after it), into the stall's gap, or
+    # nowhere.
+    on_our_clock = _boot_clock(flight.gcs, sysid, ev)
+    every = flight.gcs.received("ESC_STATUS", sender=sender)
+    late = sum(
+        1 for t, m in every if t > ev["land_ack"] and on_our_clock(t, m.time_usec) <= ev["land_ack"]
+    )
+    in_gap = sum(1 for t, _ in every if ev["stall"] <= t <= ev["resume"] + 0.5)
     assert hover_s - 2 <= len(statuses) <= most, (
-        f"{name}: {len(statuses)} ESC_STATUS in {hover_s:.1f} s (2 Hz expected, 1 at least)"
+        f"{name}: {len(statuses)} ESC_STATUS in {hover_s:.1f} s (2 Hz expected, 1 at least); "
+        f"{late} more taken in the window came after it, {in_gap} came in the stall's gap"
     )
     assert 0.5 * hover_s - 2 <= len(infos) <= 1 * hover_s + 2, (
         f"{name}: {len(infos)} ESC_INFO in {hover_s:.1f} s (1 Hz expected, 0.5 at least)"
@@ -836,7 +846,6 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
     # By when the bridge took each snapshot (ESC_STATUS time_usec, PX4's boot clock), not by
     # when PX4 passed it on: after the stall PX4 forwards what it read late.
     assert all(m.time_usec < 10**12 for _, m in statuses + infos), f"{name}: not PX4's boot clock"
-    on_our_clock = _boot_clock(flight.gcs, sysid, ev)
     rpms, volts = _reported(side)
     spinning = exact = 0
     for received, status in statuses:
