@@ -823,18 +823,24 @@ def test_esc_telemetry_reaches_the_ground_station(flight: Flight, name: str) -> 
     # The ones sent during the stall wait in PX4's socket and may reach the ground station
     # after the window's gap: the most that can come is the stall's share too.
     most = 2 * (hover_s + ev["resume"] + 0.5 - ev["stall"]) + 2
-    # Where the others went, for a failure's message: to the ground station late (taken by the
-    # bridge in the window, by their time_usec, received after it), into the stall's gap, or
-    # nowhere.
     on_our_clock = _boot_clock(flight.gcs, sysid, ev)
-    every = flight.gcs.received("ESC_STATUS", sender=sender)
-    late = sum(
-        1 for t, m in every if t > ev["land_ack"] and on_our_clock(t, m.time_usec) <= ev["land_ack"]
-    )
-    in_gap = sum(1 for t, _ in every if ev["stall"] <= t <= ev["resume"] + 0.5)
+
+    def where_the_rest_went() -> str:
+        """For a failure's message (worked out only then): how many the bridge took in the
+        window (their time_usec) reached the ground station after it, and how many came in
+        the stall's gap; the rest never came."""
+        every = flight.gcs.received("ESC_STATUS", sender=sender)
+        late = sum(
+            1
+            for t, m in every
+            if t > ev["land_ack"] and on_our_clock(t, m.time_usec) <= ev["land_ack"]
+        )
+        in_gap = sum(1 for t, _ in every if ev["stall"] <= t <= ev["resume"] + 0.5)
+        return f"{late} more taken in the window came after it, {in_gap} came in the stall's gap"
+
     assert hover_s - 2 <= len(statuses) <= most, (
         f"{name}: {len(statuses)} ESC_STATUS in {hover_s:.1f} s (2 Hz expected, 1 at least); "
-        f"{late} more taken in the window came after it, {in_gap} came in the stall's gap"
+        + where_the_rest_went()
     )
     assert 0.5 * hover_s - 2 <= len(infos) <= 1 * hover_s + 2, (
         f"{name}: {len(infos)} ESC_INFO in {hover_s:.1f} s (1 Hz expected, 0.5 at least)"
