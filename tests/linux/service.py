@@ -126,12 +126,20 @@ def armed() -> tuple[guest.Autopilot, guest.Candump]:
     the autopilot is streaming them: its newest output delivered under STREAMING_S ago and the
     newest command on can0 carrying it. What a test does next (a kill, a stop) then meets a
     bridge sending armed outputs, not one gone to its failsafe because the test's autopilot,
-    a thread in a one-CPU guest, fell quiet for a while (seen once: 1.2 s)."""
+    a thread in a one-CPU guest, fell quiet for a while (seen once: 1.2 s).
+
+    And first, once the bridge answers this autopilot: it takes one autopilot's address and
+    ignores another's until the first has been silent a while, so a new autopilot (a socket of
+    another port) after an earlier test's would find the bridge still sending the earlier one's
+    last outputs, the same values, until its input went stale (seen in CI: a FAILSAFE 0.1 s
+    before the stop test's stop)."""
     dump = guest.Candump("can0")
     pilot = guest.Autopilot(AUTOPILOT_PORT, stack=mavutil.mavlink.MAV_AUTOPILOT_PX4)
     pilot.pwm = list(PWM)
     pilot.armed = True
     pilot.start_stream(AUTOPILOT_HZ)
+    # What the bridge sends its autopilot (its HEARTBEAT among them) goes to the address it took.
+    guest.MavlinkWatch(pilot.conn).wait_for("HEARTBEAT", lambda _: True, START_TIMEOUT_S)
 
     def streaming() -> bool:
         delivered = pilot.delivered
