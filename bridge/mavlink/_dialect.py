@@ -24,7 +24,7 @@ Cache layout::
     └── mavlink/
         ├── esc_bridge-<key>.py           the generated dialect; <key> = 16 hex digits of
         │                                 sha256(XML, pymavlink version, layout revision)
-        ├── __pycache__/                  bytecode, if Python writes it on import
+        ├── __pycache__/                  its bytecode, written with it
         └── .gen-*/                       a generation in progress (removed when it ends)
 
 Each generation runs mavgen in a private temporary directory inside ``mavlink/`` and renames
@@ -43,6 +43,7 @@ import importlib.util
 import io
 import logging
 import os
+import py_compile
 import shutil
 import sys
 import tempfile
@@ -384,6 +385,8 @@ def _from_cache(own_xml: Path, root: Path | None, name: str, key: str) -> Module
     directory = root / "mavlink"
     dest = directory / f"{_MODULE_STEM}-{key}.py"
     if dest.is_file():
+        if not Path(importlib.util.cache_from_source(str(dest))).is_file():
+            _write_bytecode(dest)  # a cache from before its bytecode was written with it
         try:
             return _import_file(name, dest)
         # A damaged cache file (disk full, a hand edit) should cost a rebuild, not a start.
@@ -403,7 +406,20 @@ def _from_cache(own_xml: Path, root: Path | None, name: str, key: str) -> Module
         log.info("cannot write the MAVLink dialect cache %s: %s", directory, err)
         return None
     generate_dialect(own_xml, dest)
+    _write_bytecode(dest)
     return _import_generated(name, dest)
+
+
+def _write_bytecode(dest: Path) -> None:
+    """The cached dialect's bytecode, in its ``__pycache__``, written whether or not Python
+    writes bytecode on import: the module is over two megabytes of generated Python, which every
+    process that imports it (the main process and the control loop's, at every start) would
+    otherwise compile again where Python writes none (``PYTHONDONTWRITEBYTECODE``, as container
+    images often set). Best effort: without it the import compiles the source, as before."""
+    try:
+        py_compile.compile(str(dest), doraise=True)
+    except (OSError, py_compile.PyCompileError) as err:
+        log.info("cannot write the MAVLink dialect's bytecode beside %s: %s", dest, err)
 
 
 def _in_memory(own_xml: Path, name: str) -> ModuleType:

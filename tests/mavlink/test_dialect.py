@@ -285,6 +285,43 @@ def test_processes_starting_together_share_one_cache(tmp_path: Path) -> None:
     assert [p.name for p in (tmp_path / "mavlink").iterdir() if p.name.startswith(".gen-")] == []
 
 
+def test_where_python_writes_no_bytecode_the_dialect_is_compiled_once(tmp_path: Path) -> None:
+    """With ``PYTHONDONTWRITEBYTECODE`` (as container images often set) the dialect's bytecode
+    is written with it, or beside a cache from before, and the next process imports the
+    dialect without compiling its source."""
+    script = (
+        "import importlib.machinery\n"
+        "loader = importlib.machinery.SourceFileLoader\n"
+        "compiled, source_to_code = [], loader.source_to_code\n"
+        "def counted(self, data, path, **kwargs):\n"
+        "    compiled.append(str(path))\n"
+        "    return source_to_code(self, data, path, **kwargs)\n"
+        "loader.source_to_code = counted\n"
+        "from bridge.mavlink import load_dialect\n"
+        "path = load_dialect().__file__\n"
+        "print(path, compiled.count(path))\n"
+    )
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1", **{CACHE_ENV: str(tmp_path)})
+
+    def start() -> tuple[Path, int]:
+        done = subprocess.run(
+            [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=60
+        )
+        assert done.returncode == 0, done.stderr
+        path, compiled = done.stdout.split()
+        return Path(path), int(compiled)
+
+    path, compiled = start()
+    assert compiled == 1  # generated, compiled for its bytecode, and imported from that
+    bytecode = Path(importlib.util.cache_from_source(str(path)))
+    assert bytecode.is_file()
+    assert start() == (path, 0)
+    bytecode.unlink()  # a cache written before its bytecode was
+    assert start() == (path, 1)
+    assert bytecode.is_file()
+    assert start() == (path, 0)
+
+
 def test_changed_xml_regenerates(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
     xml = tmp_path / "esc_bridge.xml"
