@@ -28,11 +28,13 @@ the motor outputs the tap forwarded in [t_j, t], where t_j is the time of the ne
 forwarded at or before t - LAG_S: a frame may carry an older output for at most LAG_S (20 ms)
 after a newer one reached the bridge, and never one newer than the tap had forwarded (1 ms
 allowed between the observer's and the tap's clocks). An all-zero frame is also allowed when
-the bridge must be safe: PX4's newest HEARTBEAT (at t or at t - LAG_S) says disarmed, or the
-newest output is nearly stale (forwarded longer than input_timeout_ms - STALE_MARGIN_S ago:
-PX4 produces an output a little before it sends it), or the frame is within RESUME_S of
-the first output after a silence longer than input_timeout_ms (the bridge takes a few outputs
-in PX4's rhythm before it trusts their times again). The scaling is the passthrough's,
+the bridge must be safe: PX4's newest HEARTBEAT (at t or at t - LAG_S) says disarmed, or is
+nearly as old as arming_timeout_ms (forwarded longer than it - STALE_MARGIN_S ago: the bridge
+then counts PX4 disarmed, its HEARTBEAT-lost failsafe), or the newest output is nearly stale
+(forwarded longer than input_timeout_ms - STALE_MARGIN_S ago: PX4 produces an output a little
+before it sends it), or the frame is within RESUME_S of the first output after a silence
+longer than input_timeout_ms (the bridge takes a few outputs in PX4's rhythm before it trusts
+their times again). The scaling is the passthrough's,
 fraction = clamp((pwm - 1000) / 1000, 0, 1) for motors 1..4: CKESC throttle
 int(fraction * 2000 + 0.5), FT current round(fraction * 20 A) in the wire's 1e-5 A steps.
 
@@ -54,6 +56,7 @@ from typing import Any
 import pytest
 from conftest import Observer, free_port
 
+from bridge.config import OutputConfig
 from bridge.errors import CodecError
 from bridge.escs.family import EscTelemetry
 
@@ -82,6 +85,9 @@ from .conftest import (
 )
 
 INPUT_TIMEOUT_S = 0.100  # the bridges' input_timeout_ms
+# The bridges' arming_timeout_ms, the default: PX4 sends HEARTBEAT at 1 Hz and refuses a faster
+# rate, and after the stall one link's next HEARTBEAT was seen to come 3.3 s after the last.
+ARMING_TIMEOUT_S = OutputConfig.arming_timeout_ms / 1000
 LAG_S = 0.020  # see the module's lag rule: 8 output periods, for a loaded 2-core machine
 STALE_MARGIN_S = 0.030
 # After a silence of PX4's outputs longer than the input timeout, the bridge takes a few outputs
@@ -510,7 +516,11 @@ def judge(
         matched = any(_matches(th, e) for e in eligible)
         b_now = bisect.bisect_right(beat_times, t) - 1
         b_lag = bisect.bisect_right(beat_times, t - LAG_S) - 1
-        armed_now = b_now >= 0 and beat_armed[b_now]
+        armed_now = (
+            b_now >= 0
+            and beat_armed[b_now]
+            and t - beat_times[b_now] < ARMING_TIMEOUT_S - STALE_MARGIN_S
+        )
         armed_lag = b_lag >= 0 and beat_armed[b_lag]
         fresh = t - times[k] < INPUT_TIMEOUT_S - STALE_MARGIN_S
         r = bisect.bisect_right(resumed, t + 0.001) - 1
