@@ -546,6 +546,7 @@ def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop
     mav = conn.mav
     values = (list(pwm) + [0] * 16)[:16]
     extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
+    shift_us = 0
     next_ns = time.monotonic_ns()
     next_beat_ns = next_ns
     largest_gap_ns = last_ns = 0
@@ -563,6 +564,10 @@ def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop
                 mavutil.mavlink.MAV_STATE_ACTIVE,
             )
             next_beat_ns = now + 1_000_000_000
+        if control[6] != shift_us:  # the outputs moved by the test
+            shift_us = control[6]
+            values = [v + shift_us if v else 0 for v in (list(pwm) + [0] * 16)[:16]]
+            extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
         if control[2]:  # outputs on
             mav.servo_output_raw_send((now // 1000) & 0xFFFFFFFF, 0, *values[:8], **extensions)
             if last_ns:
@@ -588,8 +593,8 @@ class RealtimeAutopilot:
         there beside the whole suite, and a test timing the stream must not time its start."""
         ctx = multiprocessing.get_context("spawn")
         # armed, heartbeats on, outputs on, the largest gap between two sends (µs), period (ns),
-        # outputs sent
-        self._control = ctx.RawArray("q", [1, 1, 1, 0, round(1e9 / rate_hz), 0])
+        # outputs sent, µs added to every output
+        self._control = ctx.RawArray("q", [1, 1, 1, 0, round(1e9 / rate_hz), 0, 0])
         self._stop = ctx.Event()
         self._process = ctx.Process(
             target=_stream_outputs,
@@ -622,6 +627,11 @@ class RealtimeAutopilot:
     def rate(self, rate_hz: float) -> None:
         """Send the outputs at ``rate_hz`` from the next one on."""
         self._control[4] = round(1e9 / rate_hz)
+
+    def shift(self, us: int) -> None:
+        """From the next send on, every output (but those at 0) ``us`` above the one asked at
+        the start."""
+        self._control[6] = us
 
     def close(self) -> None:
         self._stop.set()
