@@ -544,9 +544,10 @@ def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop
         f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
     )
     mav = conn.mav
-    values = (list(pwm) + [0] * 16)[:16]
-    extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
-    shift_us = 0
+    asked = (list(pwm) + [0] * 16)[:16]
+    values: list[int] = []
+    extensions: dict[str, int] = {}
+    shift_us = -1  # the first pass makes the values
     next_ns = time.monotonic_ns()
     next_beat_ns = next_ns
     largest_gap_ns = last_ns = 0
@@ -566,7 +567,7 @@ def _stream_outputs(port: int, pwm: list[int], priority: int, control: Any, stop
             next_beat_ns = now + 1_000_000_000
         if control[6] != shift_us:  # the outputs moved by the test
             shift_us = control[6]
-            values = [v + shift_us if v else 0 for v in (list(pwm) + [0] * 16)[:16]]
+            values = [v + shift_us if v else 0 for v in asked]
             extensions = {f"servo{i}_raw": values[i - 1] for i in range(9, 17)}
         if control[2]:  # outputs on
             mav.servo_output_raw_send((now // 1000) & 0xFFFFFFFF, 0, *values[:8], **extensions)

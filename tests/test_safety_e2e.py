@@ -20,7 +20,7 @@ from conftest import STARTUP_TIMEOUT_S, Autopilot, Daemon, Observer, RealtimeAut
 from pymavlink import mavutil
 from test_daemon_e2e import arm_at, ckesc_throttles, expect_throttles
 
-from loadgen.load import preset
+from loadgen.load import preset, stat_fields
 
 HOVER = (1000, 1000, 1000, 1000)  # PWM 1500 on a passthrough quad
 QUEUED = (1200, 1200, 1200, 1200)  # PWM 1600
@@ -35,7 +35,7 @@ def wait_stopped(pid: int, timeout_s: float = 5.0) -> None:
     """Until ``pid`` is stopped (SIGSTOP reaches a process running on the other CPU a little
     after the kill returns)."""
     deadline = time.monotonic() + timeout_s
-    while Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "T":
+    while (fields := stat_fields(pid)) is None or fields[0] != "T":
         assert time.monotonic() < deadline, f"process {pid} not stopped in {timeout_s} s"
         time.sleep(0.0005)
 
@@ -215,8 +215,11 @@ def test_input_that_sat_in_the_socket_past_the_timeout_never_moves_a_motor(
         resumed_at = time.monotonic()
         os.kill(loop, signal.SIGCONT)
     time.sleep(0.5)
-    after = [(round(ts - resumed_at, 4), t) for ts, t in throttles_since(observer, resumed_at)]
-    moved = [(ts, t) for ts, t in after if t != SAFE]
+    moved = [
+        (round(ts - resumed_at, 4), t)
+        for ts, t in throttles_since(observer, resumed_at)
+        if t != SAFE
+    ]
     assert daemon.proc.poll() is None
     assert daemon.stop() == 0, daemon.output
     found = re.search(r"(\d+) left late", daemon.output)
